@@ -40,6 +40,7 @@ class Figure:
         name: human-readable name.
         family: a family label given by the figure's set, or None to use the rule.
         source: where it came from (file path), for error messages.
+        meta: provenance from importers (e.g. fit errors); not used by the maths.
     """
 
     id: str
@@ -49,6 +50,7 @@ class Figure:
     name: str = ""
     family: str | None = None
     source: str = ""
+    meta: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 3)

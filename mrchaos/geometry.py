@@ -85,6 +85,9 @@ def convex_penetration(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     it equals the distance one polygon must move to clear the other. Repeated
     vertices (padding) are ignored.
     """
+    lead = np.broadcast_shapes(a.shape[:-2], b.shape[:-2])
+    a = np.broadcast_to(a, lead + a.shape[-2:])
+    b = np.broadcast_to(b, lead + b.shape[-2:])
     na, va = _edge_normals(a)
     nb, vb = _edge_normals(b)
     axes = np.concatenate([na, nb], axis=-2)  # (..., A, 2)
