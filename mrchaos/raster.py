@@ -121,30 +121,36 @@ def rasterize(
     cl = torch.where(has, cl, torch.zeros(())).long()
     cr = torch.where(has, cr, torch.zeros(())).long()
 
-    # Priority by height, then by id: rank 0..P-1 (higher is seen). Each piece sets one
-    # bit along its span through a difference array, so a cumulative sum gives, per
-    # pixel, the set of pieces there; the highest set bit is the visible one. Sums
-    # wrap modulo 2**bits, which is exact because every true value fits.
-    if heights is None:
-        order = torch.arange(p).expand(b, p)
-        rank = order
-    else:
-        order = torch.argsort(heights_t * 1e4 + torch.arange(p).float() * 1e-3, dim=1, stable=True)
-        rank = torch.empty_like(order)
-        rank.scatter_(1, order, torch.arange(p).expand(b, p).contiguous())
+    # Each piece sets bit ``id`` along its spans through a difference array, so a
+    # cumulative sum gives, per pixel, the set of pieces there. Sums wrap modulo
+    # 2**bits, which is exact because every true value fits. The visible piece is the
+    # highest set bit when priority follows the id (later pieces on top); pixels
+    # where several pieces meet are then re-decided by height, which touches few pixels.
     dtype = _mask_dtype(p)
-    bit = torch.where(has, (1 << rank)[..., None], torch.zeros((), dtype=torch.long)).to(dtype)
+    bit = torch.where(has, (1 << torch.arange(p))[None, :, None], torch.zeros((), dtype=torch.long)).to(dtype)
     base = (torch.arange(b)[:, None, None] * h + torch.arange(h)[None, None, :]) * (w + 1)
     diff = torch.zeros(b * h * (w + 1), dtype=dtype)
     diff.index_add_(0, (base + cl).reshape(-1), bit.reshape(-1))
     diff.index_add_(0, (base + cr).reshape(-1), -bit.reshape(-1))
     mask = torch.cumsum(diff.view(b, h, w + 1), dim=2, dtype=dtype)[..., :w]
-    top = _highest_bit(mask)  # rank of the visible piece, -1 where empty
-    if heights is None:
-        ids = top.to(torch.int8)
-    else:
-        lut = torch.cat([order, torch.full((b, 1), -1, dtype=torch.long)], dim=1)
-        ids = torch.gather(lut, 1, top.reshape(b, -1).long() % (p + 1)).view(b, h, w).to(torch.int8)
+    ids = _highest_bit(mask).to(torch.int8)
+    if heights is not None:
+        order = torch.argsort(heights_t * 1e4 + torch.arange(p).float() * 1e-3, dim=1, stable=True)
+        identity = torch.arange(p).expand(b, p)
+        scenes = (order != identity).any(1)
+        if bool(scenes.any()):
+            rank = torch.empty_like(order)
+            rank.scatter_(1, order, identity.contiguous())
+            sub = mask[scenes]
+            multi = (sub & (sub - 1)) != 0
+            sb, sr, sc = torch.nonzero(multi, as_tuple=True)
+            if len(sb):
+                m = sub[sb, sr, sc].long()
+                present = ((m[:, None] >> torch.arange(p)) & 1).bool()
+                score = torch.where(present, rank[scenes][sb] + 1, torch.zeros((), dtype=torch.long))
+                fixed = ids[scenes]
+                fixed[sb, sr, sc] = score.argmax(1).to(torch.int8)
+                ids[scenes] = fixed
     height = None
     if need_height:
         hlut = torch.cat([heights_t, torch.zeros(b, 1)], dim=1)

@@ -1,0 +1,137 @@
+"""``mrchaos-figures``: inspect, validate, convert and render figure sets; build chaos caches."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from mrchaos.chaos import ChaosCache, ChaosConfig
+from mrchaos.families import FamilyRule, confusion_table, family_of, silhouette_perimeter_px
+from mrchaos.figure import Figure, FigureError
+from mrchaos.figure_io import FigureSet, load_figures, save_figures
+from mrchaos.library import builtin_figures
+from mrchaos.pieces import get_piece_set, piece_set_names
+from mrchaos.sheet import figure_sheet, save_png
+
+
+def _load(paths: list[str] | None) -> list[FigureSet]:
+    if not paths:
+        return [FigureSet("builtin", builtin_figures(), source="builtin")]
+    return [load_figures(p) for p in paths]
+
+
+def _report_rejected(sets: list[FigureSet]) -> int:
+    n = 0
+    for fs in sets:
+        for fid, why in fs.rejected:
+            print(f"rejected {fid}: {why}", file=sys.stderr)
+            n += 1
+    return n
+
+
+def cmd_sheet(args: argparse.Namespace) -> int:
+    sets = _load(args.figures)
+    _report_rejected(sets)
+    figs = [f for fs in sets for f in fs.figures]
+    if not figs:
+        raise FigureError("no valid figures to draw")
+    rule = FamilyRule()
+    for f in figs:
+        f.family = family_of(f, rule)
+    save_png(figure_sheet(figs, columns=args.columns, tile=args.tile), args.out)
+    counts = Counter(f.family for f in figs)
+    print(f"wrote {args.out}: {len(figs)} figures ({', '.join(f'{k} {v}' for k, v in sorted(counts.items()))})")
+    return 0
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    sets = _load(args.figures)
+    for fs in sets:
+        print(f"{fs.source}: {len(fs.figures)} valid, {len(fs.rejected)} rejected")
+    return 1 if _report_rejected(sets) else 0
+
+
+def cmd_families(args: argparse.Namespace) -> int:
+    sets = _load(args.figures)
+    _report_rejected(sets)
+    rule = FamilyRule()
+    figs = [f for fs in sets for f in fs.figures]
+    for f in figs:
+        per = silhouette_perimeter_px(f.silhouette(rule.view).numpy())
+        print(f"{f.id:24s} {per:7.1f} px  rule {rule.classify(per):10s}  given {f.family or '-'}")
+    if any(f.family for f in figs):
+        print(confusion_table(figs, rule)[1])
+    return 0
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    sets = _load(args.figures)
+    _report_rejected(sets)
+    figs: list[Figure] = [f for fs in sets for f in fs.figures]
+    if not figs:
+        raise FigureError("no valid figures to write")
+    save_figures(figs, args.out, name=args.name or Path(args.out).stem)
+    print(f"wrote {args.out}: {len(figs)} figures")
+    return 0
+
+
+def cmd_chaos(args: argparse.Namespace) -> int:
+    cfg = ChaosConfig(mode=args.mode)
+    cache = ChaosCache.build(get_piece_set(args.piece_set), args.n, args.seed, cfg)
+    cache.save(args.out)
+    print(f"wrote {args.out}: {len(cache)} objects ({int((cache.modes == 1).sum())} attract), seed {args.seed}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="mrchaos-figures", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+    fig_help = "interchange JSON, KILOGRAM .svg or folder of .svg (repeatable; default: built-in library)"
+
+    s = sub.add_parser("sheet", help="render figures to a PNG contact sheet")
+    s.add_argument("--figures", action="append", help=fig_help)
+    s.add_argument("--out", default="library.png")
+    s.add_argument("--columns", type=int, default=8)
+    s.add_argument("--tile", type=int, default=200)
+    s.set_defaults(fn=cmd_sheet)
+
+    s = sub.add_parser("validate", help="load and validate figure sets")
+    s.add_argument("figures", nargs="*", help=fig_help)
+    s.set_defaults(fn=cmd_validate)
+
+    s = sub.add_parser("families", help="perimeter and family of each figure; confusion table against given labels")
+    s.add_argument("figures", nargs="*", help=fig_help)
+    s.set_defaults(fn=cmd_families)
+
+    s = sub.add_parser("convert", help="write figures as interchange JSON")
+    s.add_argument("figures", nargs="+", help=fig_help)
+    s.add_argument("--out", required=True)
+    s.add_argument("--name")
+    s.set_defaults(fn=cmd_convert)
+
+    s = sub.add_parser("chaos", help="pre-generate a cache of chaos objects (.npz)")
+    s.add_argument("--n", type=int, default=4096)
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--mode", default="mix", choices=["scatter", "attract", "mix"])
+    s.add_argument("--piece-set", default="tangram7", choices=piece_set_names())
+    s.add_argument("--out", required=True)
+    s.set_defaults(fn=cmd_chaos)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.fn(args)
+    except (FigureError, ValueError, KeyError, OSError) as e:
+        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
+        print(f"mrchaos-figures: error: {msg}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
