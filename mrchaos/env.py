@@ -1,0 +1,353 @@
+"""``TangramEnv``: N batched MuJoCo tangram worlds as one TorchRL environment.
+
+Task description:
+    Place the pieces of a piece set one at a time, in the set's order, so that the
+    assembly covers the silhouette prompt. Each step places piece t at the action's
+    pose (teleport placement followed by MuJoCo settling, see :mod:`mrchaos.worlds`).
+Observation:
+    ``observation`` uint8 (N, 2, H, W): the silhouette I_s stacked on the current
+    top-down view I_tc. The step index is not observed.
+Action:
+    ``action`` int64 (N, 3): indices into the (x, y, theta) grid (``MultiCategorical``).
+Reward:
+    the coverage of piece t's target slot by piece t (twins take the better slot),
+    with the reference's shaping, penetration and angle switches from config.
+Randomizations:
+    targets from the task sampler (chaos objects, cache, figures); optional action
+    noise and camera jitter; the number k of pieces pre-assembled at reset.
+Success:
+    the episode terminates after the last piece (or after ``horizon`` placements);
+    ``info`` carries the per-piece coverage and the whole-figure Final and IoU.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, Unbounded
+from torchrl.envs import EnvBase
+
+from mrchaos.actions import ActionGrid
+from mrchaos.geometry import rigid_transform
+from mrchaos.metrics import coverage_counts, final_coverage, gate_angle, gate_penetration, iou, shape_reward
+from mrchaos.observation import ObservationConfig, silhouette_image, view_image
+from mrchaos.pieces import get_piece_set
+from mrchaos.raster import View, rasterize
+from mrchaos.scene import SceneConfig
+from mrchaos.task import TaskConfig, TaskSampler
+from mrchaos.worlds import PhysicsConfig, Worlds
+
+__all__ = ["EnvConfig", "TangramEnv"]
+
+
+@dataclass
+class EnvConfig:
+    """Everything that defines the environment.
+
+    Attributes:
+        num_worlds: batch size N.
+        piece_set: registered piece-set name.
+        view_extent, view_size: camera footprint (m) and image size (px).
+        grid_nx, grid_ny, grid_ntheta, grid_half_range: the action grid.
+        view_mode, height_levels: current-view encoding (see :mod:`mrchaos.observation`).
+        camera: "raster" (fast orthographic rasteriser) or "mujoco" (MuJoCo's renderer).
+        settle_steps, release_gap, nthread: placement physics.
+        reward_shaping, shaping_threshold: coverage below the threshold pays 0 and
+            [threshold, 1] is rescaled, for every piece larger than the smallest.
+        penetration_gate, penetration_limit: pay 0 when the placed piece ends more than
+            the limit (m) inside another.
+        angle_gate, angle_tolerance_deg: pay only when the commanded angle is within the
+            tolerance of the covered slot's angle, modulo the piece's symmetry.
+        action_noise_xy, action_noise_theta: std of Gaussian noise on the placement pose (m, rad).
+        camera_jitter: std of a per-step shift of the observed view (m); rewards use the true view.
+        task: where targets come from.
+    """
+
+    num_worlds: int = 16
+    piece_set: str = "tangram7"
+    view_extent: float = 0.26
+    view_size: int = 120
+    grid_nx: int = 51
+    grid_ny: int = 51
+    grid_ntheta: int = 8
+    grid_half_range: float = 0.10
+    view_mode: str = "binary"
+    height_levels: int = 3
+    camera: str = "raster"
+    settle_steps: int = 40
+    release_gap: float = 0.002
+    nthread: int = 0
+    reward_shaping: bool = False
+    shaping_threshold: float = 0.5
+    penetration_gate: bool = False
+    penetration_limit: float = 0.002
+    angle_gate: bool = False
+    angle_tolerance_deg: float = 20.0
+    action_noise_xy: float = 0.0
+    action_noise_theta: float = 0.0
+    camera_jitter: float = 0.0
+    task: TaskConfig = field(default_factory=TaskConfig)
+
+    def __post_init__(self) -> None:
+        if self.camera not in ("raster", "mujoco"):
+            raise ValueError(f"env.camera must be 'raster' or 'mujoco', got {self.camera!r}")
+        if self.num_worlds < 1:
+            raise ValueError(f"env.num_worlds must be >= 1, got {self.num_worlds}")
+
+
+class TangramEnv(EnvBase):
+    """Batched tangram assembly (see the module docstring for the task).
+
+    Args:
+        cfg: environment config.
+        seed: seed of the env's ``torch.Generator`` (and the numpy generator derived from it).
+        figures: optional figures for the task sampler (instead of ``cfg.task.figure_sets``).
+    """
+
+    batch_locked = True
+
+    def __init__(self, cfg: EnvConfig = EnvConfig(), seed: int | None = 0, figures=None, device: str = "cpu"):
+        super().__init__(device=device, batch_size=torch.Size([cfg.num_worlds]))
+        self.cfg = cfg
+        self.piece_set = get_piece_set(cfg.piece_set)
+        self.view = View(cfg.view_extent, cfg.view_size)
+        self.grid = ActionGrid(cfg.grid_nx, cfg.grid_ny, cfg.grid_ntheta, cfg.grid_half_range)
+        thickness = min(p.thickness for p in self.piece_set.pieces)
+        self.obs_cfg = ObservationConfig(cfg.view_mode, cfg.height_levels, thickness)
+        physics = PhysicsConfig(settle_steps=cfg.settle_steps, release_gap=cfg.release_gap, nthread=cfg.nthread)
+        self.worlds = Worlds(self.piece_set, cfg.num_worlds, physics, SceneConfig(), self.view)
+        self.sampler = TaskSampler(self.piece_set, cfg.task, figures)
+        self._camera = None
+        if cfg.camera == "mujoco":
+            from mrchaos.camera import MujocoCamera
+
+            self._camera = MujocoCamera(self.worlds, self.view)
+
+        n, p = cfg.num_worlds, len(self.piece_set)
+        self.num_pieces = p
+        areas = np.array([pc.area for pc in self.piece_set.pieces])
+        self._shaped = torch.as_tensor(areas > areas.min() + 1e-12)
+        self._period = torch.as_tensor([pc.symmetry_period for pc in self.piece_set.pieces], dtype=torch.float32)
+        self._twins = self.piece_set.twin_matrix()
+        self._outlines = self.piece_set.padded_outlines()
+        # Per-world episode state.
+        self.target = np.zeros((n, p, 3))
+        self.target_ids = torch.full((n, cfg.view_size, cfg.view_size), -1, dtype=torch.int8)
+        self.silhouette = torch.zeros((n, cfg.view_size, cfg.view_size), dtype=torch.uint8)
+        self.next_piece = np.zeros(n, dtype=np.int64)
+        self.end_piece = np.full(n, p, dtype=np.int64)
+        self.task_source = np.zeros(n, dtype=np.int64)
+        self.task_figure = np.full(n, -1, dtype=np.int64)
+        self._view = torch.zeros((n, cfg.view_size, cfg.view_size), dtype=torch.uint8)
+        self._done = torch.zeros((n, 1), dtype=torch.bool)
+        self._make_specs()
+        self._set_seed(seed)
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self) -> None:
+        n, p, s = self.cfg.num_worlds, self.num_pieces, self.cfg.view_size
+        bs = self.batch_size
+        info = Composite(
+            coverage=Unbounded(shape=(n, p), dtype=torch.float32),
+            step_coverage=Unbounded(shape=(n, 1), dtype=torch.float32),
+            final=Unbounded(shape=(n, 1), dtype=torch.float32),
+            iou=Unbounded(shape=(n, 1), dtype=torch.float32),
+            physics=Categorical(2, shape=(n, 1), dtype=torch.bool),
+            penetration=Unbounded(shape=(n, 1), dtype=torch.float32),
+            piece=Unbounded(shape=(n, 1), dtype=torch.int64),
+            shape=bs,
+        )
+        self.observation_spec = Composite(
+            observation=Bounded(0, 255, shape=(n, 2, s, s), dtype=torch.uint8),
+            info=info,
+            shape=bs,
+        )
+        self.action_spec = MultiCategorical(list(self.grid.nvec), shape=(n, 3), dtype=torch.int64)
+        self.reward_spec = Unbounded(shape=(n, 1), dtype=torch.float32)
+        self.full_done_spec = Composite(
+            done=Categorical(2, shape=(n, 1), dtype=torch.bool),
+            terminated=Categorical(2, shape=(n, 1), dtype=torch.bool),
+            truncated=Categorical(2, shape=(n, 1), dtype=torch.bool),
+            shape=bs,
+        )
+
+    # ------------------------------------------------------------------ seeding
+    def _set_seed(self, seed: int | None) -> None:
+        self.rng = torch.Generator()
+        if seed is None:
+            self.rng.seed()
+        else:
+            self.rng.manual_seed(int(seed))
+        self._np_rng = np.random.default_rng(int(torch.randint(0, 2**62, (1,), generator=self.rng)))
+
+    # ------------------------------------------------------------------ reset
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        n, p = self.cfg.num_worlds, self.num_pieces
+        rows = np.arange(n)
+        k = np.zeros(n, dtype=np.int64)
+        horizon = np.full(n, p, dtype=np.int64)
+        if tensordict is not None:
+            mask = tensordict.get("_reset", None)
+            if mask is not None:
+                rows = np.flatnonzero(mask.reshape(n, -1).any(-1).numpy())
+            if "preassembled" in tensordict.keys():
+                k = tensordict.get("preassembled").reshape(n).numpy().astype(np.int64)
+            if "horizon" in tensordict.keys():
+                horizon = tensordict.get("horizon").reshape(n).numpy().astype(np.int64)
+        if ((k < 0) | (k >= p)).any():
+            raise ValueError(f"preassembled must be in [0, {p - 1}], got {k.tolist()}")
+        if len(rows):
+            self._reset_rows(rows, k[rows], horizon[rows])
+        return self._observe(torch.zeros(n, 1), done_rows=rows, fresh=True)
+
+    def _reset_rows(self, rows: np.ndarray, k: np.ndarray, horizon: np.ndarray) -> None:
+        tasks = self.sampler.sample(len(rows), self._np_rng)
+        self.target[rows] = tasks.poses
+        self.task_source[rows] = tasks.source
+        self.task_figure[rows] = tasks.figure
+        polys = rigid_transform(self._outlines[None], tasks.poses)
+        ids = rasterize(polys, self.view).ids
+        self.target_ids[rows] = ids
+        self.silhouette[rows] = silhouette_image(ids)
+        pre = [(np.flatnonzero(k > j), tasks.poses[k > j, j]) for j in range(self.num_pieces)]
+        self.worlds.reset(rows, [(rows[sub], poses) for sub, poses in pre])
+        self.next_piece[rows] = k
+        self.end_piece[rows] = np.where(horizon > 0, np.minimum(k + horizon, self.num_pieces), self.num_pieces)
+        self._done[rows] = False
+
+    # ------------------------------------------------------------------ step
+    def _check_action(self, action: torch.Tensor) -> np.ndarray:
+        n = self.cfg.num_worlds
+        if action.shape != (n, 3):
+            raise ValueError(f"action must have shape ({n}, 3), got {tuple(action.shape)}")
+        if action.dtype not in (torch.int64, torch.int32, torch.int16, torch.uint8):
+            raise TypeError(f"action must be an integer tensor of grid indices, got {action.dtype}")
+        a = action.cpu().numpy().astype(np.int64)
+        hi = np.array(self.grid.nvec)
+        bad = (a < 0) | (a >= hi)
+        if bad.any():
+            r, c = np.argwhere(bad)[0]
+            raise ValueError(
+                f"action out of range: world {r} component {'xyθ'[c]} = {a[r, c]}, valid 0..{hi[c] - 1}"
+            )
+        return a
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        a = self._check_action(tensordict.get("action"))
+        return self.place_poses(self.grid.to_pose(a))
+
+    def place_poses(self, poses: np.ndarray) -> TensorDictBase:
+        """Place the next piece of every world at continuous poses (N, 3) and return the step's outputs.
+
+        This is the step without the action grid: the exact oracle and the robot
+        placement use it. Worlds whose episode is over are left unchanged.
+        """
+        n = self.cfg.num_worlds
+        poses = np.asarray(poses, dtype=np.float64).reshape(n, 3)
+        if not np.isfinite(poses).all():
+            raise ValueError("placement poses contain NaN or inf")
+        commanded = poses.copy()
+        if self.cfg.action_noise_xy > 0 or self.cfg.action_noise_theta > 0:
+            noise = torch.randn((n, 3), generator=self.rng, dtype=torch.float64).numpy()
+            poses = poses + noise * [self.cfg.action_noise_xy, self.cfg.action_noise_xy, self.cfg.action_noise_theta]
+        rows = np.flatnonzero(self.next_piece < self.end_piece)
+        piece = self.next_piece.copy()
+        physics = np.zeros(n, dtype=bool)
+        penetration = np.zeros(n)
+        if len(rows):
+            res = self.worlds.place(rows, piece[rows], poses[rows])
+            physics[rows], penetration[rows] = res.physics, res.penetration
+            self.next_piece[rows] += 1
+        out = self._observe(torch.zeros(n, 1), done_rows=np.zeros(0, np.int64), fresh=False,
+                            piece=piece, acted=rows, commanded=commanded, penetration=penetration)
+        out.set(("info", "physics"), torch.as_tensor(physics)[:, None])
+        out.set(("info", "penetration"), torch.as_tensor(penetration, dtype=torch.float32)[:, None])
+        return out
+
+    # ------------------------------------------------------------------ outputs
+    def _observe(
+        self,
+        reward: torch.Tensor,
+        done_rows: np.ndarray,
+        fresh: bool,
+        piece: np.ndarray | None = None,
+        acted: np.ndarray | None = None,
+        commanded: np.ndarray | None = None,
+        penetration: np.ndarray | None = None,
+    ) -> TensorDictBase:
+        n, p = self.cfg.num_worlds, self.num_pieces
+        w = self.worlds
+        if self._camera is not None:
+            raster = self._camera.render(np.arange(n))
+        else:
+            raster = rasterize(w.footprint, self.view, visible=w.placed, heights=w.top,
+                               need_height=self.obs_cfg.needs_height)
+        counts, area = coverage_counts(raster.ids, self.target_ids, p)
+        ratio = counts.double() / area.clamp(min=1).double()[:, None, :]
+        ratio = torch.where(area[:, None, :] > 0, ratio, torch.zeros(()))
+        allowed = torch.as_tensor(self._twins)
+        best, slot = torch.where(allowed, ratio, torch.full((), -1.0, dtype=torch.float64)).max(-1)
+        coverage = best.clamp(min=0).float()  # (N, P)
+        occupied = raster.ids >= 0
+        sil = self.target_ids >= 0
+        view = raster
+        if self.cfg.camera_jitter > 0 and self._camera is None:
+            shift = torch.randn((n, 2), generator=self.rng, dtype=torch.float64).numpy() * self.cfg.camera_jitter
+            view = rasterize(w.footprint + shift[:, None, None, :], self.view, visible=w.placed, heights=w.top,
+                             need_height=self.obs_cfg.needs_height)
+        self._view = view_image(view, self.obs_cfg)
+
+        step_cov = torch.zeros(n, 1)
+        pieces = torch.zeros(n, 1, dtype=torch.int64)
+        if piece is not None and acted is not None and len(acted):
+            t = torch.as_tensor(piece)
+            ar = torch.arange(n)
+            raw = coverage[ar, t]
+            r = raw.clone()
+            if self.cfg.reward_shaping:
+                r = shape_reward(r, self._shaped[t], self.cfg.shaping_threshold)
+            if self.cfg.penetration_gate:
+                r = gate_penetration(r, torch.as_tensor(penetration, dtype=torch.float32), self.cfg.penetration_limit)
+            if self.cfg.angle_gate:
+                tgt_theta = torch.as_tensor(self.target[np.arange(n), slot[ar, t].numpy(), 2], dtype=torch.float32)
+                r = gate_angle(r, torch.as_tensor(commanded[:, 2], dtype=torch.float32), tgt_theta,
+                               self._period[t], math.radians(self.cfg.angle_tolerance_deg))
+            mask = torch.zeros(n, dtype=torch.bool)
+            mask[torch.as_tensor(acted)] = True
+            reward = torch.where(mask, r, torch.zeros(()))[:, None]
+            step_cov = torch.where(mask, raw, torch.zeros(()))[:, None]
+            pieces = t[:, None]
+            done_now = torch.as_tensor(self.next_piece >= self.end_piece)[:, None]
+            self._done = self._done | (done_now & mask[:, None])
+        obs = torch.stack([self.silhouette, self._view], dim=1)
+        info = TensorDict(
+            coverage=coverage,
+            step_coverage=step_cov.float(),
+            final=final_coverage(occupied, sil)[:, None],
+            iou=iou(occupied, sil)[:, None],
+            physics=torch.zeros(n, 1, dtype=torch.bool),
+            penetration=torch.zeros(n, 1),
+            piece=pieces,
+            batch_size=self.batch_size,
+        )
+        done = self._done.clone()
+        return TensorDict(
+            observation=obs,
+            info=info,
+            reward=reward.float(),
+            done=done,
+            terminated=done.clone(),
+            truncated=torch.zeros(n, 1, dtype=torch.bool),
+            batch_size=self.batch_size,
+        ) if not fresh else TensorDict(
+            observation=obs,
+            info=info,
+            done=done,
+            terminated=done.clone(),
+            truncated=torch.zeros(n, 1, dtype=torch.bool),
+            batch_size=self.batch_size,
+        )
