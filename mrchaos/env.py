@@ -55,7 +55,8 @@ class EnvConfig:
         grid_nx, grid_ny, grid_ntheta, grid_half_range: the action grid.
         view_mode, height_levels: current-view encoding (see :mod:`mrchaos.observation`).
         camera: "raster" (fast orthographic rasteriser) or "mujoco" (MuJoCo's renderer).
-        settle_steps, release_gap, nthread: placement physics.
+        settle_steps, release_gap, push_depth, nthread: placement physics (see
+            :class:`mrchaos.worlds.PhysicsConfig`).
         reward_shaping, shaping_threshold: coverage below the threshold pays 0 and
             [threshold, 1] is rescaled, for every piece larger than the smallest.
         penetration_gate, penetration_limit: pay 0 when the placed piece ends more than
@@ -80,6 +81,7 @@ class EnvConfig:
     camera: str = "raster"
     settle_steps: int = 40
     release_gap: float = 0.002
+    push_depth: float = 0.001
     nthread: int = 0
     reward_shaping: bool = False
     shaping_threshold: float = 0.5
@@ -118,7 +120,9 @@ class TangramEnv(EnvBase):
         self.grid = ActionGrid(cfg.grid_nx, cfg.grid_ny, cfg.grid_ntheta, cfg.grid_half_range)
         thickness = min(p.thickness for p in self.piece_set.pieces)
         self.obs_cfg = ObservationConfig(cfg.view_mode, cfg.height_levels, thickness)
-        physics = PhysicsConfig(settle_steps=cfg.settle_steps, release_gap=cfg.release_gap, nthread=cfg.nthread)
+        physics = PhysicsConfig(
+            settle_steps=cfg.settle_steps, release_gap=cfg.release_gap, push_depth=cfg.push_depth, nthread=cfg.nthread
+        )
         self.worlds = Worlds(self.piece_set, cfg.num_worlds, physics, SceneConfig(), self.view)
         self.sampler = TaskSampler(self.piece_set, cfg.task, figures)
         self._camera = None
@@ -238,10 +242,11 @@ class TangramEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         a = self._check_action(tensordict.get("action"))
-        return self.place_poses(self.grid.to_pose(a))
+        piece = np.minimum(self.next_piece, self.num_pieces - 1)
+        return self.place_poses(self.piece_set.to_centroid(piece, self.grid.to_pose(a)))
 
     def place_poses(self, poses: np.ndarray) -> TensorDictBase:
-        """Place the next piece of every world at continuous poses (N, 3) and return the step's outputs.
+        """Place the next piece of every world at continuous centroid poses (N, 3); return the step's outputs.
 
         This is the step without the action grid: the exact oracle and the robot
         placement use it. Worlds whose episode is over are left unchanged.

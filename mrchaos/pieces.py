@@ -42,6 +42,9 @@ class Piece:
         chiral: True when the mirror image is a different shape that a top-down
             suction gripper cannot produce (it cannot flip a part over).
         mass: kilograms; default from a plywood-like density.
+        action_origin: the point (centroid frame, m) that a placement action positions.
+            The reference code positions each tangram piece by its mesh origin, not its
+            centroid; keeping that point makes the action grid's rounding identical.
     """
 
     name: str
@@ -50,6 +53,7 @@ class Piece:
     symmetry: int = 1
     chiral: bool = False
     mass: float | None = None
+    action_origin: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         outline = np.asarray(self.outline, dtype=np.float64)
@@ -141,6 +145,27 @@ class PieceSet:
         rep = self.twin_group_of()
         return rep[:, None] == rep[None, :]
 
+    def action_origins(self) -> np.ndarray:
+        """(P, 2) action origin of every piece in its centroid frame."""
+        return np.array([p.action_origin for p in self.pieces], dtype=np.float64)
+
+    def to_centroid(self, piece: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """Poses (..., 3) of action origins -> centroid poses of the given pieces."""
+        return self._shift(piece, pose, -1.0)
+
+    def to_origin(self, piece: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """Centroid poses (..., 3) -> poses of the pieces' action origins."""
+        return self._shift(piece, pose, 1.0)
+
+    def _shift(self, piece: np.ndarray, pose: np.ndarray, sign: float) -> np.ndarray:
+        pose = np.asarray(pose, dtype=np.float64)
+        off = self.action_origins()[np.asarray(piece)]
+        c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+        out = pose.copy()
+        out[..., 0] += sign * (c * off[..., 0] - s * off[..., 1])
+        out[..., 1] += sign * (s * off[..., 0] + c * off[..., 1])
+        return out
+
     @property
     def max_vertices(self) -> int:
         return max(len(p.outline) for p in self.pieces)
@@ -171,9 +196,15 @@ def tangram7() -> PieceSet:
     """
     s = 0.1 / math.sqrt(2.0)  # 70.71 mm: large-triangle leg
     t = 0.010
+
+    def tri_origin(leg: float) -> tuple[float, float]:
+        # The reference meshes put a triangle's origin a quarter leg from the right-angle
+        # corner along each leg; the centroid is a third of a leg from it.
+        return (-leg / 12, -leg / 12)
+
     pieces = (
-        Piece("large_triangle_1", _tri(s), t),
-        Piece("large_triangle_2", _tri(s), t),
+        Piece("large_triangle_1", _tri(s), t, action_origin=tri_origin(s)),
+        Piece("large_triangle_2", _tri(s), t, action_origin=tri_origin(s)),
         Piece("square", np.array([[0, 0], [s / 2, 0], [s / 2, s / 2], [0, s / 2]]), t, symmetry=4),
         Piece(
             "parallelogram",
@@ -182,9 +213,9 @@ def tangram7() -> PieceSet:
             symmetry=2,
             chiral=True,
         ),
-        Piece("medium_triangle", _tri(0.05), t),
-        Piece("small_triangle_1", _tri(s / 2), t),
-        Piece("small_triangle_2", _tri(s / 2), t),
+        Piece("medium_triangle", _tri(0.05), t, action_origin=tri_origin(0.05)),
+        Piece("small_triangle_1", _tri(s / 2), t, action_origin=tri_origin(s / 2)),
+        Piece("small_triangle_2", _tri(s / 2), t, action_origin=tri_origin(s / 2)),
     )
     return PieceSet("tangram7", pieces, twins=((0, 1), (5, 6)))
 

@@ -38,6 +38,10 @@ class PhysicsConfig:
         release_gap: the piece is released this far above the highest surface under it (m).
         free_tolerance: a footprint that penetrates others by at most this much (m) counts
             as free (grid rounding leaves micrometre overlaps between neighbours).
+        push_depth: a footprint that overlaps others by at most this much (m) is set down
+            on the same surface as them and contact pushes the pieces apart, as a sliver
+            of overlap does when a real piece is lowered beside another; deeper overlaps
+            release the piece above the highest surface under it.
         nthread: threads of the batch (0 = all cores).
         flat_tilt: a piece tilted less than this (rad) is drawn with its flat outline.
     """
@@ -45,6 +49,7 @@ class PhysicsConfig:
     settle_steps: int = 40
     release_gap: float = 0.002
     free_tolerance: float = 1e-6
+    push_depth: float = 0.001
     nthread: int = 0
     flat_tilt: float = math.radians(1.0)
 
@@ -197,11 +202,15 @@ class Worlds:
         fr = np.flatnonzero(free)
         if len(fr):
             self._write_flat(rows[fr], piece[fr], pose[fr], half[fr])
-        # Physics path: drop from just above the highest surface under the footprint.
+        # Physics path: drop from just above the highest surface the piece really lands on;
+        # slivers of overlap (<= push_depth) do not hold it up, contact pushes them apart.
         ph = np.flatnonzero(~free)
         if len(ph):
-            floor = np.where(under[ph], self.top[rows[ph]], 0.0).max(1)
-            self._write_flat(rows[ph], piece[ph], pose[ph], floor + self.cfg.release_gap + half[ph])
+            deep = under[ph] & (depth[ph] > self.cfg.push_depth)
+            base = np.where(under[ph], self.top[rows[ph]] - self._thick[None, :], np.inf).min(1)  # their resting level
+            floor = np.where(deep.any(1), np.where(deep, self.top[rows[ph]], 0.0).max(1), base.clip(min=0.0))
+            gap = np.where(deep.any(1), self.cfg.release_gap, 0.0)
+            self._write_flat(rows[ph], piece[ph], pose[ph], floor + gap + half[ph])
             self.batch.step(ids=rows[ph], nstep=self.cfg.settle_steps)
             bad = ~np.isfinite(self.qpos[rows[ph]]).all(1)
             if bad.any():  # a diverged world: fall back to the plain placement

@@ -1,0 +1,30 @@
+"""The scripted oracle: places every piece at its true target pose.
+
+It reads the solution (the target poses), which a learnt policy never sees, so
+it measures ceilings, not skill: ``exact`` is the placement pipeline's ceiling and
+``grid`` (the nearest action of the grid) the action grid's ceiling.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from mrchaos.env import TangramEnv
+
+__all__ = ["oracle_poses", "oracle_actions"]
+
+
+def oracle_poses(env: TangramEnv) -> np.ndarray:
+    """(N, 3) exact target pose of each world's next piece (its own slot)."""
+    n = env.cfg.num_worlds
+    piece = np.minimum(env.next_piece, env.num_pieces - 1)
+    return env.target[np.arange(n), piece]
+
+
+def oracle_actions(env: TangramEnv) -> torch.Tensor:
+    """(N, 3) grid action nearest to each world's next target pose (theta modulo the piece's symmetry)."""
+    piece = np.minimum(env.next_piece, env.num_pieces - 1)
+    period = np.array([p.symmetry_period for p in env.piece_set.pieces])[piece]
+    origin = env.piece_set.to_origin(piece, oracle_poses(env))
+    return torch.as_tensor(env.grid.nearest(origin, period))
