@@ -33,7 +33,7 @@ from torchrl.envs import EnvBase
 
 from mrchaos.actions import ActionGrid
 from mrchaos.geometry import rigid_transform
-from mrchaos.metrics import coverage_counts, final_coverage, gate_angle, gate_penetration, iou, shape_reward
+from mrchaos.metrics import final_from_joint, gate_angle, gate_penetration, iou_from_joint, joint_counts, shape_reward
 from mrchaos.observation import ObservationConfig, silhouette_image, view_image
 from mrchaos.pieces import get_piece_set
 from mrchaos.raster import View, rasterize
@@ -79,7 +79,7 @@ class EnvConfig:
     view_mode: str = "binary"
     height_levels: int = 3
     camera: str = "raster"
-    settle_steps: int = 40
+    settle_steps: int = 25
     release_gap: float = 0.002
     push_depth: float = 0.001
     nthread: int = 0
@@ -178,6 +178,11 @@ class TangramEnv(EnvBase):
             truncated=Categorical(2, shape=(n, 1), dtype=torch.bool),
             shape=bs,
         )
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        if self._camera is not None:
+            self._camera.close()
+        super().close(raise_if_closed=raise_if_closed)
 
     # ------------------------------------------------------------------ seeding
     def _set_seed(self, seed: int | None) -> None:
@@ -291,14 +296,13 @@ class TangramEnv(EnvBase):
         else:
             raster = rasterize(w.footprint, self.view, visible=w.placed, heights=w.top,
                                need_height=self.obs_cfg.needs_height)
-        counts, area = coverage_counts(raster.ids, self.target_ids, p)
+        joint = joint_counts(raster.ids, self.target_ids, p)
+        counts, area = joint[:, 1:, 1:], joint[:, :, 1:].sum(1)
         ratio = counts.double() / area.clamp(min=1).double()[:, None, :]
         ratio = torch.where(area[:, None, :] > 0, ratio, torch.zeros(()))
         allowed = torch.as_tensor(self._twins)
         best, slot = torch.where(allowed, ratio, torch.full((), -1.0, dtype=torch.float64)).max(-1)
         coverage = best.clamp(min=0).float()  # (N, P)
-        occupied = raster.ids >= 0
-        sil = self.target_ids >= 0
         view = raster
         if self.cfg.camera_jitter > 0 and self._camera is None:
             shift = torch.randn((n, 2), generator=self.rng, dtype=torch.float64).numpy() * self.cfg.camera_jitter
@@ -332,8 +336,8 @@ class TangramEnv(EnvBase):
         info = TensorDict(
             coverage=coverage,
             step_coverage=step_cov.float(),
-            final=final_coverage(occupied, sil)[:, None],
-            iou=iou(occupied, sil)[:, None],
+            final=final_from_joint(joint)[:, None],
+            iou=iou_from_joint(joint)[:, None],
             physics=torch.zeros(n, 1, dtype=torch.bool),
             penetration=torch.zeros(n, 1),
             piece=pieces,

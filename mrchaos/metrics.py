@@ -24,6 +24,9 @@ import numpy as np
 import torch
 
 __all__ = [
+    "joint_counts",
+    "final_from_joint",
+    "iou_from_joint",
     "coverage_counts",
     "piece_coverage",
     "shape_reward",
@@ -36,20 +39,17 @@ __all__ = [
 ]
 
 
-def coverage_counts(cur: torch.Tensor, tgt: torch.Tensor, num_pieces: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Joint pixel counts.
+def joint_counts(cur: torch.Tensor, tgt: torch.Tensor, num_pieces: int) -> torch.Tensor:
+    """(B, P+1, P+1) int64 pixel counts of (seen piece + 1, target slot + 1); index 0 is empty/outside.
 
-    Returns:
-        counts: (B, P, P) int64, pixels where piece i is seen on target slot j.
-        area: (B, P) int64, pixels of each target slot.
+    Every metric of a view follows from it: coverage, Final, IoU, strict Rela.
     """
     p1 = num_pieces + 1
     b = cur.shape[0]
     if p1 * p1 > 256 or cur.dtype != torch.int8:
         code = (cur.long() + 1) * p1 + (tgt.long() + 1)
         code = code.reshape(b, -1) + torch.arange(b)[:, None] * (p1 * p1)
-        joint = torch.bincount(code.reshape(-1), minlength=b * p1 * p1).view(b, p1, p1)
-        return joint[:, 1:, 1:], joint[:, :, 1:].sum(1)
+        return torch.bincount(code.reshape(-1), minlength=b * p1 * p1).view(b, p1, p1)
     # Fast path: a one-byte code per pixel (-1 wraps to 255, so +1 gives 0), widened
     # to int16 with a per-scene offset, then one bincount. Chunks keep offsets < 2**15.
     code = cur.view(torch.uint8) + 1
@@ -62,8 +62,30 @@ def coverage_counts(cur: torch.Tensor, tgt: torch.Tensor, num_pieces: int) -> tu
         part = code[s : s + chunk].reshape(min(chunk, b - s), -1).to(torch.int16)
         part += (torch.arange(part.shape[0], dtype=torch.int16) * (p1 * p1))[:, None]
         joints.append(torch.bincount(part.view(-1), minlength=part.shape[0] * p1 * p1))
-    joint = torch.cat(joints).view(b, p1, p1)
+    return torch.cat(joints).view(b, p1, p1)
+
+
+def coverage_counts(cur: torch.Tensor, tgt: torch.Tensor, num_pieces: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Joint pixel counts.
+
+    Returns:
+        counts: (B, P, P) int64, pixels where piece i is seen on target slot j.
+        area: (B, P) int64, pixels of each target slot.
+    """
+    joint = joint_counts(cur, tgt, num_pieces)
     return joint[:, 1:, 1:], joint[:, :, 1:].sum(1)
+
+
+def final_from_joint(joint: torch.Tensor) -> torch.Tensor:
+    """(B,) Final from a joint histogram: occupied target pixels over target pixels."""
+    return joint[:, 1:, 1:].sum((1, 2)).float() / joint[:, :, 1:].sum((1, 2)).clamp(min=1).float()
+
+
+def iou_from_joint(joint: torch.Tensor) -> torch.Tensor:
+    """(B,) IoU of occupancy and silhouette from a joint histogram."""
+    inter = joint[:, 1:, 1:].sum((1, 2))
+    union = joint.sum((1, 2)) - joint[:, 0, 0]
+    return inter.float() / union.clamp(min=1).float()
 
 
 def piece_coverage(counts: torch.Tensor, area: torch.Tensor, twins: np.ndarray | torch.Tensor) -> torch.Tensor:

@@ -2,7 +2,9 @@
 
 This is where metres become pixels. The camera looks straight down at the table
 centre; image row 0 is the +y edge, column 0 the -x edge, and a pixel belongs to
-a polygon when its centre does. Polygons are turned into per-row spans (one
+a polygon when its centre does; a centre exactly on an edge follows OpenGL's
+top-left rule (in on the left and top edges, out on the right and bottom), so the
+rasteriser and MuJoCo's renderer agree on shared and aligned edges. Polygons are turned into per-row spans (one
 interval per convex polygon and image row), composited through a bit-set
 difference array so the highest piece wins, which costs O(B*P*H) arithmetic plus
 one cumulative sum over the image instead of a per-pixel inside test.
@@ -84,7 +86,9 @@ def rasterize(
             later). Default: all equal.
         need_height: also return the visible height image (costs one more gather).
     """
-    poly = torch.as_tensor(polygons, dtype=torch.float32)
+    # float64 so that pixel centres lying exactly on an edge (common: the action grid
+    # and the pixel pitch are commensurate) follow the fill rule, not rounding noise.
+    poly = torch.as_tensor(polygons, dtype=torch.float64)
     b, p, v, _ = poly.shape
     h = w = view.size
     if visible is None:
@@ -105,18 +109,21 @@ def rasterize(
     ry = (half - poly[..., 1]) / pix
     # Scanline spans: for each image row, where its centre line crosses the polygon's
     # edges. Half-open crossing rule [min, max) counts a shared vertex once.
-    yc = torch.arange(h, dtype=torch.float32) + 0.5
+    yc = torch.arange(h, dtype=torch.float64) + 0.5
     ax, ay = cx[..., None], ry[..., None]  # (B, P, V, 1)
     bx, by = torch.roll(cx, -1, dims=-1)[..., None], torch.roll(ry, -1, dims=-1)[..., None]
-    crosses = (torch.minimum(ay, by) <= yc) & (yc < torch.maximum(ay, by))
+    # Ties (a centre on an edge, up to rounding) resolve by a fixed tiny shift: in on
+    # the top and left edges, out on the bottom and right ones.
+    eps = 1e-6
+    crosses = (torch.minimum(ay, by) - eps <= yc) & (yc < torch.maximum(ay, by) - eps)
     dy = torch.where(by == ay, torch.ones(()), by - ay)
     xi = ax + (yc - ay) * (bx - ax) / dy  # (B, P, V, H)
     inf = torch.tensor(float("inf"))
     xl = torch.where(crosses, xi, inf).min(dim=2).values  # (B, P, H)
     xr = torch.where(crosses, xi, -inf).max(dim=2).values
     # Pixel c is covered when its centre c + 0.5 lies in [xl, xr).
-    cl = torch.ceil(xl - 0.5).clamp(0, w)
-    cr = torch.ceil(xr - 0.5).clamp(0, w)
+    cl = torch.ceil(xl - 0.5 - eps).clamp(0, w)
+    cr = torch.ceil(xr - 0.5 - eps).clamp(0, w)
     has = (cr > cl) & visible_t[..., None]
     cl = torch.where(has, cl, torch.zeros(())).long()
     cr = torch.where(has, cr, torch.zeros(())).long()

@@ -38,6 +38,9 @@ class SceneConfig:
         density: piece density (kg/m^3), plywood-like.
         staging_x: x of the staging row's first slot (m), outside the camera view.
         staging_pitch: spacing of staging slots along y (m).
+        sleep_tolerance: MuJoCo puts resting pieces to sleep below this velocity, so
+            the pieces waiting in the staging area and those settled cost nothing
+            until something touches them (about 5x faster settling here).
     """
 
     timestep: float = 0.002
@@ -45,6 +48,7 @@ class SceneConfig:
     density: float = 600.0
     staging_x: float = 0.32
     staging_pitch: float = 0.09
+    sleep_tolerance: float = 1e-4
 
 
 def staging_poses(piece_set: PieceSet, cfg: SceneConfig = SceneConfig()) -> np.ndarray:
@@ -97,7 +101,9 @@ def build_scene_xml(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view:
     # Perspective camera of the reference: a 4:3 image whose centre square is the observation.
     return f'''<mujoco model="mrchaos_{piece_set.name}">
   <compiler angle="radian" autolimits="true"/>
-  <option timestep="{cfg.timestep}" integrator="implicitfast" cone="elliptic" impratio="10"/>
+  <option timestep="{cfg.timestep}" integrator="implicitfast" cone="elliptic" impratio="10" sleep_tolerance="{cfg.sleep_tolerance}">
+    <flag sleep="enable"/>
+  </option>
   <visual>
     <global offwidth="640" offheight="480"/>
     <map znear="0.01" zfar="2"/>

@@ -42,14 +42,16 @@ class PhysicsConfig:
             on the same surface as them and contact pushes the pieces apart, as a sliver
             of overlap does when a real piece is lowered beside another; deeper overlaps
             release the piece above the highest surface under it.
+        release_speed: downward speed of a released piece (m/s).
         nthread: threads of the batch (0 = all cores).
         flat_tilt: a piece tilted less than this (rad) is drawn with its flat outline.
     """
 
-    settle_steps: int = 40
+    settle_steps: int = 25
     release_gap: float = 0.002
     free_tolerance: float = 1e-6
     push_depth: float = 0.001
+    release_speed: float = 0.05
     nthread: int = 0
     flat_tilt: float = math.radians(1.0)
 
@@ -104,7 +106,8 @@ class Worlds:
         self.n = n
         self.cfg = physics
         self.model = build_model(piece_set, scene, view)
-        self.batch = mujoco.batch.Batch(self.model, nsim=n, nthread=physics.nthread)
+        # Sleeping islands need one MjData per world (persistent).
+        self.batch = mujoco.batch.Batch(self.model, nsim=n, nthread=physics.nthread, persistent=True)
         self.qpos = self.batch.bind("qpos")
         self.qvel = self.batch.bind("qvel")
         p = len(piece_set)
@@ -131,11 +134,15 @@ class Worlds:
         cols = 7 * piece[:, None] + np.arange(7)
         return self.qpos[rows[:, None], cols]
 
-    def _write_flat(self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, z: np.ndarray) -> None:
+    def _write_flat(
+        self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, z: np.ndarray, vz: float = 0.0
+    ) -> None:
         cols = 7 * piece[:, None] + np.arange(7)
         q = np.concatenate([pose[:, :2], z[:, None], _quat_yaw(pose[:, 2])], 1)
         self.qpos[rows[:, None], cols] = q
-        self.qvel[rows[:, None], 6 * piece[:, None] + np.arange(6)] = 0.0
+        vcols = 6 * piece[:, None] + np.arange(6)
+        self.qvel[rows[:, None], vcols] = 0.0
+        self.qvel[rows, 6 * piece + 2] = vz
 
     def planar_poses(self) -> np.ndarray:
         """(N, P, 3) x, y and yaw of every piece (yaw of the body's x axis)."""
@@ -210,17 +217,29 @@ class Worlds:
             base = np.where(under[ph], self.top[rows[ph]] - self._thick[None, :], np.inf).min(1)  # their resting level
             floor = np.where(deep.any(1), np.where(deep, self.top[rows[ph]], 0.0).max(1), base.clip(min=0.0))
             gap = np.where(deep.any(1), self.cfg.release_gap, 0.0)
-            self._write_flat(rows[ph], piece[ph], pose[ph], floor + gap + half[ph])
+            # Released moving down, as from a gripper, which also keeps MuJoCo from
+            # putting the piece to sleep before it has fallen.
+            self._write_flat(rows[ph], piece[ph], pose[ph], floor + gap + half[ph], vz=-self.cfg.release_speed)
             self.batch.step(ids=rows[ph], nstep=self.cfg.settle_steps)
             bad = ~np.isfinite(self.qpos[rows[ph]]).all(1)
             if bad.any():  # a diverged world: fall back to the plain placement
                 b = ph[bad]
                 self._write_flat(rows[b], piece[b], pose[b], half[b])
         self.placed[rows, piece] = True
-        self._refresh(rows)
+        # A fast-path world changed by one flat piece; physics worlds may have moved anything.
+        if len(fr):
+            r, k = rows[fr], piece[fr]
+            self.footprint[r, k, : self._v] = foot[fr]
+            self.footprint[r, k, self._v :] = foot[fr, -1:]
+            self.top[r, k] = self._thick[k]
+        if len(ph):
+            self._refresh(rows[ph])
         self.count_fast += len(fr)
         self.count_physics += len(ph)
-        return PlacementResult(physics=~free, penetration=self._penetration(rows, piece))
+        penetration = np.zeros(m)
+        if len(ph):  # a free footprint cannot end inside anything
+            penetration[ph] = self._penetration(rows[ph], piece[ph])
+        return PlacementResult(physics=~free, penetration=penetration)
 
     def _penetration(self, rows: np.ndarray, piece: np.ndarray) -> np.ndarray:
         """Depth of the placed piece inside any other placed piece: planar overlap where the
