@@ -79,7 +79,7 @@ class EnvConfig:
     view_mode: str = "binary"
     height_levels: int = 3
     camera: str = "raster"
-    settle_steps: int = 25
+    settle_steps: int = 20
     release_gap: float = 0.002
     push_depth: float = 0.001
     nthread: int = 0

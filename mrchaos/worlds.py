@@ -47,7 +47,7 @@ class PhysicsConfig:
         flat_tilt: a piece tilted less than this (rad) is drawn with its flat outline.
     """
 
-    settle_steps: int = 25
+    settle_steps: int = 20
     release_gap: float = 0.002
     free_tolerance: float = 1e-6
     push_depth: float = 0.001

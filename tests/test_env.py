@@ -221,3 +221,23 @@ def test_gymnasium_registration():
     for _ in range(7):
         obs, r, term, trunc, info = env.step(env.action_space.sample())
     assert term and not trunc and 0.0 <= info["final"] <= 1.0
+
+
+def test_action_noise_and_camera_jitter_switches():
+    target = np.zeros((2, 7, 3))
+    target[:, :, 0] = np.linspace(-0.09, 0.09, 7)
+    a = torch.tensor([[25, 25, 4], [10, 30, 2]])
+    outs = {}
+    for name, kw in [("plain", {}), ("noise", {"action_noise_xy": 0.003, "action_noise_theta": 0.05}),
+                     ("jitter", {"camera_jitter": 0.004})]:
+        env = make(2, seed=5, **kw)
+        env.sampler = FixedTargets(target)
+        env.reset()
+        out = env.step(TensorDict(action=a, batch_size=[2]))["next"]
+        outs[name] = (out, env.worlds.qpos[:, :3].copy())
+    plain, noisy, jit = outs["plain"], outs["noise"], outs["jitter"]
+    assert not np.allclose(plain[1], noisy[1])  # the piece landed elsewhere
+    assert np.abs(plain[1][:, :2] - noisy[1][:, :2]).max() < 0.02
+    assert np.array_equal(plain[1], jit[1])  # jitter moves the camera, not the piece
+    assert not torch.equal(plain[0]["observation"][:, 1], jit[0]["observation"][:, 1])
+    assert torch.equal(plain[0]["reward"], jit[0]["reward"])  # rewards use the true view
