@@ -1,0 +1,58 @@
+"""``mrchaos-train CONFIG.yaml [key=value ...]`` and ``mrchaos-train --resume runs/<name>``."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from mrchaos.checkpoint import CheckpointError
+from mrchaos.config import ConfigError, load_config
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="mrchaos-train", description="Train a tangram policy with PPO.")
+    ap.add_argument("config", nargs="?", help="YAML experiment (e.g. conf/full.yaml)")
+    ap.add_argument("overrides", nargs="*", help="dotted overrides, e.g. optim.lr=1e-4 env.num_worlds=64")
+    ap.add_argument("--resume", metavar="RUN_DIR", help="continue the run in this folder from its last checkpoint")
+    ap.add_argument("--eval", type=int, default=200, help="Random objects for the final greedy evaluation (0: skip)")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    try:
+        from mrchaos.train import Trainer, resume_config
+
+        if args.resume:
+            run_dir = Path(args.resume)
+            cfg = resume_config(run_dir)
+            if args.overrides or args.config:
+                extra = ([args.config] if args.config else []) + args.overrides
+                cfg = load_config(run_dir / "config.yaml", extra)
+            if not (run_dir / "checkpoints" / "last.pt").exists():
+                raise CheckpointError(f"{run_dir}: no checkpoints/last.pt to resume from")
+            trainer = Trainer(cfg, run_dir, resume=True)
+        else:
+            if not args.config:
+                ap.error("a config file is required (or --resume RUN_DIR)")
+            cfg = load_config(args.config, args.overrides)
+            run_dir = Path(cfg.runs_dir) / cfg.name
+            if (run_dir / "checkpoints" / "last.pt").exists():
+                raise ConfigError(
+                    f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another name=..."
+                )
+            trainer = Trainer(cfg, run_dir)
+        result = trainer.run()
+        print(f"{run_dir}: {result['iteration']} iterations, {result['frames']} frames"
+              + (" (stopped by signal)" if result["stopped"] else ""))
+        if args.eval > 0 and not result["stopped"]:
+            ev = trainer.finish(args.eval)
+            print(f"greedy on {ev['n']} Random objects: Rela {ev['rela']:.3f}  Final {ev['final']:.3f}  "
+                  f"IoU {ev['iou']:.3f}  strict Rela {ev['strict_rela']:.3f}")
+        return 0
+    except (ConfigError, CheckpointError, FileNotFoundError, ValueError) as e:
+        print(f"mrchaos-train: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

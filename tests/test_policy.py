@@ -1,0 +1,77 @@
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from mrchaos.actions import ActionGrid
+from mrchaos.policy import FactorisedCategorical, GridCategorical, PolicyConfig, SpatialHead, build_actor_critic
+from mrchaos.raster import View
+
+
+def test_grid_categorical_sampling_matches_probabilities():
+    torch.manual_seed(0)
+    logits = torch.full((1, 2, 3, 4), -30.0)
+    logits[0, 1, 2, 3] = 0.0  # theta 1, y 2, x 3
+    logits[0, 0, 0, 1] = np.log(3.0)  # three times as likely: theta 0, y 0, x 1
+    d = GridCategorical(logits)
+    s = d.sample(torch.Size([4000]))[:, 0]
+    a = (s == torch.tensor([1, 0, 0])).all(-1).float().mean()
+    b = (s == torch.tensor([3, 2, 1])).all(-1).float().mean()
+    assert a == pytest.approx(0.75, abs=0.03) and b == pytest.approx(0.25, abs=0.03)
+    assert d.log_prob(torch.tensor([[1, 0, 0]])).exp().item() == pytest.approx(0.75, abs=1e-3)
+    assert d.mode.tolist() == [[1, 0, 0]]
+    assert d.entropy().item() == pytest.approx(-(0.75 * np.log(0.75) + 0.25 * np.log(0.25)), abs=1e-3)
+
+
+def test_factorised_categorical():
+    lx, ly, lt = torch.randn(5, 51), torch.randn(5, 51), torch.randn(5, 8)
+    d = FactorisedCategorical(lx, ly, lt)
+    a = d.sample()
+    assert a.shape == (5, 3) and (a[:, 2] < 8).all()
+    expect = (torch.log_softmax(lx, -1).gather(-1, a[:, :1]) + torch.log_softmax(ly, -1).gather(-1, a[:, 1:2])
+              + torch.log_softmax(lt, -1).gather(-1, a[:, 2:])).squeeze(-1)
+    assert torch.allclose(d.log_prob(a), expect, atol=1e-5)
+    assert torch.equal(d.mode, torch.stack([lx.argmax(-1), ly.argmax(-1), lt.argmax(-1)], -1))
+
+
+def test_spatial_head_reads_the_grid_positions():
+    """A logit peak at a point of the image selects the grid action at that point."""
+    grid, view = ActionGrid(), View()
+    head = SpatialHead(1, grid, view)
+    with torch.no_grad():
+        head.conv.weight.zero_()
+        head.conv.bias.zero_()
+        head.conv.weight[3, 0] = 1.0  # theta index 3 reads the feature map
+    f = torch.zeros(1, 1, 30, 30)
+    x, y = 0.048, -0.02  # metres
+    col = int((x + view.extent / 2) / view.extent * 30)
+    row = int((view.extent / 2 - y) / view.extent * 30)
+    f[0, 0, row, col] = 10.0
+    d = GridCategorical(head(f))
+    ix, iy, it = d.mode[0].tolist()
+    assert it == 3
+    cell = view.extent / 30
+    assert abs(grid.xs[ix] - x) < cell and abs(grid.ys[iy] - y) < cell
+
+
+@pytest.mark.parametrize("name", ["paper", "spatial"])
+def test_actor_critic_shapes_and_determinism(name):
+    grid, view = ActionGrid(), View()
+    ac = build_actor_critic(PolicyConfig(name=name, channels=[8, 8, 8], hidden=32), grid, view)
+    policy, value = ac.get_policy_operator(), ac.get_value_operator()
+    td = TensorDict(observation=torch.randint(0, 256, (4, 2, 120, 120), dtype=torch.uint8), batch_size=[4])
+    out = policy(td.clone())
+    assert out["action"].shape == (4, 3) and out["action"].dtype == torch.int64
+    assert (out["action"] < torch.tensor(grid.nvec)).all() and "action_log_prob" in out.keys()
+    assert value(td.clone())["state_value"].shape == (4, 1)
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        a1, a2 = policy(td.clone())["action"], policy(td.clone())["action"]
+    assert torch.equal(a1, a2)
+
+
+def test_policy_config_errors():
+    with pytest.raises(ValueError, match="policy.name"):
+        PolicyConfig(name="transformer")
+    with pytest.raises(ValueError, match="channels"):
+        PolicyConfig(channels=[8, 8])

@@ -1,0 +1,141 @@
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from mrchaos.checkpoint import CheckpointError, check_compatible, load_checkpoint, save_checkpoint
+from mrchaos.cli.train import main as train_main
+from mrchaos.config import ConfigError, load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ROOT / "conf" / "smoke.yaml"
+
+
+def _rows(run: Path) -> list[dict]:
+    with open(run / "metrics.csv") as f:
+        return list(csv.DictReader(f))
+
+
+def test_all_shipped_configs_load():
+    for path in sorted((ROOT / "conf").glob("*.yaml")):
+        cfg = load_config(path)
+        assert cfg.name
+    full = load_config(ROOT / "conf" / "full.yaml")
+    assert full.curriculum.stages == "both" and full.optim.lr == 2e-4
+    assert load_config(ROOT / "conf" / "wo_local.yaml").curriculum.stages == "global"
+    assert load_config(ROOT / "conf" / "wo_global.yaml").curriculum.stages == "local"
+
+
+def test_config_errors(tmp_path):
+    with pytest.raises(ConfigError, match="no such config file"):
+        load_config(tmp_path / "none.yaml")
+    with pytest.raises(ConfigError, match=r"unknown key 'optim.learning_rate'.*optim.lr"):
+        load_config(SMOKE, ["optim.learning_rate=1e-3"])
+    with pytest.raises(ConfigError, match=r"env.num_worlds: expected an integer"):
+        load_config(SMOKE, ["env.num_worlds=many"])
+    with pytest.raises(ConfigError, match="unknown key 'colector'"):
+        load_config(SMOKE, ["colector.kind=sync"])
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("env: [1, 2")
+    with pytest.raises(ConfigError, match="bad.yaml: not valid YAML"):
+        load_config(bad)
+    cfg = load_config(SMOKE, ["optim.lr=0.001", "policy.channels=[4,8,8]", "curriculum.stages=global"])
+    assert cfg.optim.lr == 0.001 and cfg.policy.channels == [4, 8, 8] and cfg.curriculum.stages == "global"
+
+
+def test_cli_reports_config_errors(tmp_path, capsys):
+    assert train_main([str(SMOKE), "bogus.key=1", f"runs_dir={tmp_path}"]) == 2
+    assert "unknown key 'bogus'" in capsys.readouterr().err
+
+
+def test_checkpoint_errors(tmp_path):
+    p = tmp_path / "x.pt"
+    with pytest.raises(CheckpointError, match="no such checkpoint"):
+        load_checkpoint(p)
+    p.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(CheckpointError, match="x.pt: not a readable checkpoint"):
+        load_checkpoint(p)
+    save_checkpoint(p, {"model": {"w": torch.ones(2)}, "piece_set": "tangram7", "obs_shape": [2, 120, 120],
+                        "grid": [51, 51, 8]}, half=True)
+    st = load_checkpoint(p)
+    assert st["model"]["w"].dtype == torch.float32
+    with pytest.raises(CheckpointError, match="piece set 'tangram7', not 'cans'"):
+        check_compatible(st, p, "cans", [2, 120, 120], [51, 51, 8])
+    with pytest.raises(CheckpointError, match="observation shape"):
+        check_compatible(st, p, "tangram7", [2, 64, 64], [51, 51, 8])
+
+
+def test_smoke_run_and_resume_after_kill(tmp_path):
+    """conf/smoke.yaml runs end to end; a killed run resumes from its last checkpoint."""
+    env = dict(os.environ)
+    cmd = [sys.executable, "-m", "mrchaos.cli.train", str(SMOKE), f"runs_dir={tmp_path}",
+           "collector.total_frames=100000", "checkpoint.every=1", "--eval", "0"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    run = tmp_path / "smoke"
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        if (run / "metrics.csv").exists() and len(_rows(run)) >= 4:
+            break
+        time.sleep(0.2)
+    proc.kill()  # a hard kill: no chance to save
+    proc.wait()
+    assert (run / "checkpoints" / "last.pt").exists()
+    saved = load_checkpoint(run / "checkpoints" / "last.pt")
+    it0 = saved["iteration"]
+    assert it0 >= 3
+    rows_before = len(_rows(run))
+
+    rc = train_main(["--resume", str(run), "collector.total_frames=" + str(saved["frames"] + 256), "--eval", "0"])
+    assert rc == 0
+    after = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert after["iteration"] == it0 + 2  # continued: two more iterations of 128 frames
+    assert after["frames"] == saved["frames"] + 256
+    rows = _rows(run)
+    assert [int(r["iteration"]) for r in rows[rows_before:]] == [it0 + 1, it0 + 2]
+    assert list(run.glob("recording*.rrd"))
+    # Weights moved on from the resumed ones, and the optimiser state came along.
+    k = next(iter(after["model"]))
+    assert not torch.equal(after["model"][k], saved["model"][k])
+    assert after["optim"]["state"]
+
+
+def test_sigterm_saves_and_exits_cleanly(tmp_path):
+    cmd = [sys.executable, "-m", "mrchaos.cli.train", str(SMOKE), f"runs_dir={tmp_path}",
+           "collector.total_frames=100000", "checkpoint.every=1000", "--eval", "0"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    run = tmp_path / "smoke"
+    deadline = time.time() + 120
+    while time.time() < deadline and not ((run / "metrics.csv").exists() and len(_rows(run)) >= 2):
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err.decode()[-2000:]
+    assert b"stopped by signal" in out
+    st = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert st["iteration"] == len(_rows(run))
+
+
+def test_existing_run_is_not_overwritten(tmp_path, capsys):
+    run = tmp_path / "smoke" / "checkpoints"
+    run.mkdir(parents=True)
+    (run / "last.pt").write_bytes(b"precious")
+    assert train_main([str(SMOKE), f"runs_dir={tmp_path}"]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert (run / "last.pt").read_bytes() == b"precious"
+
+
+def test_plot(tmp_path):
+    from mrchaos.cli.plot import main as plot_main
+
+    run = tmp_path / "r"
+    run.mkdir()
+    (run / "metrics.csv").write_text(
+        "iteration,frames,episodes,stage,rela\n1,10,5,1,0.1\n2,20,10,1,0.2\n3,30,15,2,0.25\n4,40,16,2,0.3\n")
+    assert plot_main([str(run)]) == 0
+    assert (run / "learning_curve.png").stat().st_size > 1000
