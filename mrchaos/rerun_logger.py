@@ -14,7 +14,7 @@ import numpy as np
 import rerun as rr
 from torchrl.record.loggers import Logger
 
-__all__ = ["RerunLogger"]
+__all__ = ["RerunLogger", "EpisodeRecorder"]
 
 
 class RerunLogger(Logger):
@@ -84,3 +84,40 @@ class RerunLogger(Logger):
             rr.log(f"{base}/view/action", rr.Points2D([[px, py]], radii=2.0, labels=[f"θ#{int(act[2])}"]),
                    recording=self.experiment)
             rr.log(f"{base}/reward", rr.Scalars(float(rew)), recording=self.experiment)
+
+
+class EpisodeRecorder:
+    """Step-by-step rerun recording of evaluation episodes (``mrchaos-bench --record``).
+
+    Entities ``<policy>/<family>/<episode id>/{silhouette,view,action,coverage/<piece>}``
+    on the ``step`` timeline.
+    """
+
+    def __init__(self, path: str | Path, piece_names: Sequence[str], grid_xy, extent: float) -> None:
+        self.stream = rr.RecordingStream("mrchaos-bench")
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        self.stream.save(str(path))
+        self.piece_names = list(piece_names)
+        self.grid_xy = grid_xy
+        self.extent = extent
+
+    def log_episodes(self, policy: str, family: str, ids: Sequence[str], res) -> None:
+        for rec in res.steps or []:
+            rr.set_time("step", sequence=int(rec["t"]), recording=self.stream)
+            for k, ep in enumerate(rec["episode"]):
+                base = f"{policy}/{family}/{ids[ep]}"
+                obs = rec["observation"][k]
+                size = obs.shape[-1]
+                rr.log(f"{base}/silhouette", rr.Image(obs[0]), recording=self.stream)
+                rr.log(f"{base}/view", rr.Image(obs[1]), recording=self.stream)
+                a = rec["action"][k]
+                x, y = self.grid_xy[0][a[0]], self.grid_xy[1][a[1]]
+                px, py = (x + self.extent / 2) / self.extent * size, (self.extent / 2 - y) / self.extent * size
+                rr.log(f"{base}/view/action", rr.Points2D([[px, py]], radii=2.0,
+                       labels=[f"{self.piece_names[rec['t']]} θ#{int(a[2])}"]), recording=self.stream)
+                for i, name in enumerate(self.piece_names):
+                    rr.log(f"{base}/coverage/{name}", rr.Scalars(float(rec["coverage"][k][i])), recording=self.stream)
+                rr.log(f"{base}/reward", rr.Scalars(float(rec["reward"][k])), recording=self.stream)
+
+    def close(self) -> None:
+        self.stream.flush()

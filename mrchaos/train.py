@@ -21,6 +21,7 @@ import numpy as np
 import torch
 import yaml
 from tensordict import TensorDict
+from tensordict.nn import TensorDictSequential
 from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
 from torchrl.envs import TransformedEnv
@@ -101,7 +102,13 @@ class Trainer:
         self.actor_critic = build_actor_critic(cfg.policy, base.grid, base.view, base.action_spec)
         self.policy = self.actor_critic.get_policy_operator()
         self.value = self.actor_critic.get_value_operator()
-        self.advantage = GAE(gamma=cfg.loss.gamma, lmbda=cfg.loss.lmbda, value_network=self.value, average_gae=False)
+        # What the collector stores: the action and its log-probability, not the
+        # intermediate features and logits (for the spatial net, gigabytes per batch).
+        self.collect_policy = TensorDictSequential(self.policy, selected_out_keys=["action", "action_log_prob"])
+        # No vmap: the spatial trunk uses channels_last tensors, which vmap cannot query.
+        self.advantage = GAE(
+            gamma=cfg.loss.gamma, lmbda=cfg.loss.lmbda, value_network=self.value, average_gae=False, deactivate_vmap=True
+        )
         self.loss = ClipPPOLoss(
             self.policy, self.value, clip_epsilon=cfg.loss.clip_epsilon, entropy_coeff=cfg.loss.entropy_coeff,
             critic_coeff=cfg.loss.critic_coeff, normalize_advantage=cfg.loss.normalize_advantage,
@@ -139,14 +146,14 @@ class Trainer:
                 return make_env(cfg, cfg.seed + 1000, stage=stage)
 
             return MultiSyncCollector(
-                [factory] * cfg.collector.workers, self.policy,
+                [factory] * cfg.collector.workers, self.collect_policy,
                 frames_per_batch=cfg.collector.frames_per_batch, total_frames=-1,
                 auto_register_policy_transforms=False,
             )
         if cfg.collector.kind != "sync":
             raise ValueError(f"collector.kind must be 'sync' or 'multisync', got {cfg.collector.kind!r}")
         return Collector(
-            self.env, self.policy, frames_per_batch=cfg.collector.frames_per_batch, total_frames=-1,
+            self.env, self.collect_policy, frames_per_batch=cfg.collector.frames_per_batch, total_frames=-1,
             auto_register_policy_transforms=False,
         )
 

@@ -1,0 +1,247 @@
+"""The benchmark: the paper's Table I for any set of policies on every family.
+
+Families: **Random** (seeded chaos objects, as in training) and the human-designed
+**H-Normal / H-Hard / H-Fiendish** (a figure set's own labels, else the
+perimeter rule). Each policy places all j pieces of every target in order,
+greedily. Reported per family: Rela and Final (the paper's metrics) and IoU and
+strict Rela (ours), with a 95 % interval (1.96 standard errors) and the count.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mrchaos.chaos import ChaosConfig, generate
+from mrchaos.checkpoint import CheckpointError, check_compatible, load_checkpoint
+from mrchaos.env import EnvConfig, TangramEnv
+from mrchaos.evaluate import EpisodeResults, evaluate, policy_actor
+from mrchaos.families import FamilyRule, family_of
+from mrchaos.figure import FAMILIES, Figure
+from mrchaos.figure_io import FigureSet, write_atomic
+from mrchaos.oracle import oracle_actions
+from mrchaos.pieces import get_piece_set
+
+__all__ = ["BenchError", "PolicySpec", "resolve_policy", "FAMILY_NAMES", "parse_families", "Bench", "SHIPPED"]
+
+FAMILY_NAMES = {f.lower(): f for f in FAMILIES}
+METRICS = ("rela", "final", "iou", "strict_rela")
+#: Learnt policies shipped with the package: name -> (file, label).
+SHIPPED = {
+    "mrchaos": ("mrchaos.pt", "MRChaos (full curriculum)"),
+    "mrchaos-wo-local": ("mrchaos-wo-local.pt", "MRChaos w/o local"),
+    "mrchaos-wo-global": ("mrchaos-wo-global.pt", "MRChaos w/o global"),
+    "bc": ("bc.pt", "BC (trained on the built-in library)"),
+}
+
+
+class BenchError(ValueError):
+    """Bad benchmark input: one clear line, exit code 2."""
+
+
+@dataclass
+class PolicySpec:
+    """A policy to evaluate: a baseline by name or a checkpoint."""
+
+    name: str
+    label: str
+    kind: str  # "random", "oracle" or "checkpoint"
+    path: str | None = None
+    state: dict | None = field(default=None, repr=False)
+
+
+def shipped_path(file: str) -> Path:
+    return Path(str(resources.files("mrchaos") / "data" / "policies" / file))
+
+
+def resolve_policy(spec: str) -> PolicySpec:
+    """A name (random, oracle, mrchaos, mrchaos-wo-local, mrchaos-wo-global, bc) or a checkpoint / run path."""
+    if spec == "random":
+        return PolicySpec("random", "random (uniform actions)", "random")
+    if spec == "oracle":
+        return PolicySpec("oracle", "oracle (nearest grid; reads the solution)", "oracle")
+    if spec in SHIPPED:
+        file, label = SHIPPED[spec]
+        path = shipped_path(file)
+        if not path.exists():
+            raise BenchError(f"policy {spec!r}: its checkpoint {path} is not shipped with this version")
+        return PolicySpec(spec, label, "checkpoint", str(path), load_checkpoint(path))
+    p = Path(spec)
+    if p.is_dir():
+        p = p / "checkpoints" / "last.pt"
+    if not p.exists():
+        names = ["random", "oracle", *SHIPPED]
+        raise BenchError(f"policy {spec!r}: no such checkpoint or run, and not one of {names}")
+    return PolicySpec(Path(spec).name, f"{Path(spec).name} ({p})", "checkpoint", str(p), load_checkpoint(p))
+
+
+def parse_families(text: str) -> list[str]:
+    """'all' or a comma-separated list of random, h-normal, h-hard, h-fiendish."""
+    if text.strip().lower() == "all":
+        return list(FAMILIES)
+    out = []
+    for part in text.split(","):
+        key = part.strip().lower()
+        if key not in FAMILY_NAMES:
+            raise BenchError(f"unknown family {part.strip()!r}; use 'all' or some of {sorted(FAMILY_NAMES)}")
+        out.append(FAMILY_NAMES[key])
+    return out
+
+
+def summarise(values: np.ndarray) -> dict[str, float]:
+    """Mean, standard error and 95 % half-interval of per-episode values."""
+    n = len(values)
+    mean = float(np.mean(values)) if n else float("nan")
+    se = float(np.std(values, ddof=1) / math.sqrt(n)) if n > 1 else float("nan")
+    return {"mean": mean, "se": se, "ci95": 1.96 * se if n > 1 else float("nan"), "n": n}
+
+
+class Bench:
+    """Evaluates policies on families.
+
+    Args:
+        figure_sets: human figure sets (their figures are grouped by family).
+        families: families to run.
+        random_objects: Random objects (seeded; the same set every run).
+        seed: seed of the Random objects.
+        placement: "teleport" (the robot placement lands with the UR5e issue).
+        num_worlds: worlds evaluated at once.
+    """
+
+    def __init__(
+        self,
+        figure_sets: list[FigureSet],
+        families: list[str],
+        random_objects: int = 200,
+        seed: int = 0,
+        placement: str = "teleport",
+        num_worlds: int = 64,
+    ) -> None:
+        if placement != "teleport":
+            raise BenchError(f"placement {placement!r} is not available yet (only 'teleport'; 'robot' comes with the UR5e)")
+        self.families = families
+        self.seed = seed
+        self.num_worlds = num_worlds
+        self.piece_set = get_piece_set("tangram7")
+        rule = FamilyRule()
+        self.targets: dict[str, tuple[np.ndarray, list[str]]] = {}
+        self.skipped = [(fid, why) for fs in figure_sets for fid, why in fs.rejected]
+        figs: list[Figure] = []
+        for fs in figure_sets:
+            for f in fs.figures:
+                if f.piece_set.name != self.piece_set.name:
+                    self.skipped.append((f.id, f"{f.where}: piece set {f.piece_set.name} is not {self.piece_set.name}"))
+                elif f.has_mirrored:
+                    self.skipped.append((f.id, f"{f.where}: needs a flipped parallelogram (a suction robot cannot flip it)"))
+                else:
+                    figs.append(f)
+        for fam in families:
+            if fam == "Random":
+                if random_objects > 0:
+                    poses = generate(self.piece_set, random_objects, np.random.default_rng(seed), ChaosConfig())[0]
+                    self.targets[fam] = (poses, [f"random-{i}" for i in range(random_objects)])
+                continue
+            chosen = [f for f in figs if family_of(f, rule) == fam]
+            if chosen:
+                self.targets[fam] = (np.stack([f.poses for f in chosen]), [f.id for f in chosen])
+
+    def make_env(self, spec: PolicySpec) -> TangramEnv:
+        cfg = EnvConfig(num_worlds=self.num_worlds)
+        if spec.state is not None:
+            env_cfg = spec.state.get("config", {}).get("env", {})
+            keep = {k: env_cfg[k] for k in ("view_extent", "view_size", "grid_nx", "grid_ny", "grid_ntheta",
+                                             "grid_half_range", "view_mode", "height_levels") if k in env_cfg}
+            cfg = dataclasses.replace(cfg, **keep)
+        cfg = dataclasses.replace(cfg, task=dataclasses.replace(cfg.task, cache=0.0, chaos=1.0))
+        return TangramEnv(cfg, seed=self.seed)
+
+    def actor(self, spec: PolicySpec, env: TangramEnv):
+        if spec.kind == "oracle":
+            return lambda e, td: oracle_actions(e)
+        if spec.kind == "random":
+            g = torch.Generator().manual_seed(self.seed)
+            nvec = torch.tensor(env.grid.nvec)
+            return lambda e, td: (torch.rand((e.cfg.num_worlds, 3), generator=g) * nvec).long()
+        from mrchaos.policy import PolicyConfig, build_actor_critic
+
+        st = spec.state
+        check_compatible(st, spec.path, env.piece_set.name, [2, env.view.size, env.view.size], env.grid.nvec)
+        try:
+            pcfg = PolicyConfig(**st["policy"])
+            ac = build_actor_critic(pcfg, env.grid, env.view, env.action_spec)
+            ac.load_state_dict(st["model"])
+        except (TypeError, ValueError, RuntimeError, KeyError) as e:
+            raise CheckpointError(f"{spec.path}: cannot rebuild its policy ({str(e)[:200]})") from None
+        ac.eval()
+        return policy_actor(ac.get_policy_operator())
+
+    def run(self, specs: list[PolicySpec], record=None) -> dict:
+        """Results: {policy: {family: {metric: summary}}} plus per-episode arrays for sheets."""
+        results: dict = {"policies": {}, "counts": {}, "skipped": self.skipped, "seed": self.seed}
+        self.episodes: dict[tuple[str, str], EpisodeResults] = {}
+        for spec in specs:
+            env = self.make_env(spec)
+            act = self.actor(spec, env)
+            per_fam = {}
+            for fam, (poses, ids) in self.targets.items():
+                res = evaluate(env, poses, act, record_steps=record is not None)
+                self.episodes[(spec.name, fam)] = res
+                per_fam[fam] = {m: summarise(getattr(res, m)) for m in METRICS}
+                results["counts"][fam] = len(ids)
+                if record is not None:
+                    record.log_episodes(spec.name, fam, ids, res)
+            results["policies"][spec.name] = {"label": spec.label, "families": per_fam}
+            env.close()
+        return results
+
+
+def format_table(results: dict, families: list[str], markdown: bool = False) -> str:
+    """Table I layout (one row per policy, Rela and Final per family), then the strict metrics."""
+    fams = [f for f in families if f in results["counts"]]
+    blocks = []
+    for title, metrics in (("Table I (paper's metrics, %)", ("rela", "final")),
+                           ("Strict metrics (ours, %)", ("iou", "strict_rela"))):
+        short = {"rela": "Rela", "final": "Final", "iou": "IoU", "strict_rela": "sRela"}
+        head = ["policy"] + [f"{f} {short[m]}" for f in fams for m in metrics]
+        rows = []
+        for pol in results["policies"].values():
+            s = pol["families"]
+            rows.append([pol["label"]] + [f"{100 * s[f][m]['mean']:.1f} ± {100 * s[f][m]['ci95']:.1f}"
+                                          for f in fams for m in metrics])
+        rows.append(["n (episodes)"] + sum([[str(results["counts"][f])] + [""] * (len(metrics) - 1) for f in fams], []))
+        if markdown:
+            lines = [f"**{title}**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+            lines += ["| " + " | ".join(r) + " |" for r in rows]
+        else:
+            widths = [max(len(r[i]) for r in rows + [head]) for i in range(len(head))]
+
+            def fmt(r: list[str]) -> str:
+                return "  ".join(c.ljust(widths[i]) if i == 0 else c.rjust(widths[i]) for i, c in enumerate(r))
+
+            lines = [title, fmt(head), "-" * (sum(widths) + 2 * len(widths))] + [fmt(r) for r in rows]
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)
+
+
+def write_outputs(results: dict, families: list[str], out: Path) -> None:
+    """results.json, results.csv and results.md in ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    write_atomic(out / "results.json", json.dumps(results, indent=1, default=float) + "\n")
+    lines = ["policy,family,metric,mean,se,ci95,n"]
+    for name, pol in results["policies"].items():
+        for fam, ms in pol["families"].items():
+            for m, s in ms.items():
+                lines.append(f"{name},{fam},{m},{s['mean']:.6f},{s['se']:.6f},{s['ci95']:.6f},{s['n']}")
+    write_atomic(out / "results.csv", "\n".join(lines) + "\n")
+    md = ["# mrchaos-bench results", "", "Mean ± 95 % interval, in percent. Rela and Final are the paper's metrics; "
+          "IoU and sRela (strict Rela) are ours.", "", format_table(results, families, markdown=True)]
+    if results["skipped"]:
+        md += ["", f"Skipped {len(results['skipped'])} figures:"] + [f"- {fid}: {why}" for fid, why in results["skipped"]]
+    write_atomic(out / "results.md", "\n".join(md) + "\n")

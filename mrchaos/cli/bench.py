@@ -1,0 +1,90 @@
+"""``mrchaos-bench``: the paper's Table I for policies and baselines on every family."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="mrchaos-bench", description=__doc__)
+    ap.add_argument("--families", default="all", help="'all' or comma-separated: random,h-normal,h-hard,h-fiendish")
+    ap.add_argument("--policy", action="append", help="random, oracle, mrchaos, mrchaos-wo-local, mrchaos-wo-global, "
+                    "bc, or a checkpoint / run folder (repeatable; default: mrchaos)")
+    ap.add_argument("--figures", action="append", help="interchange JSON or folder of KILOGRAM SVGs (repeatable; "
+                    "default: the built-in library)")
+    ap.add_argument("--random-objects", type=int, default=200)
+    ap.add_argument("--placement", default="teleport", choices=["teleport", "robot"])
+    ap.add_argument("--record", type=Path, help="write a rerun recording of every episode")
+    ap.add_argument("--out", type=Path, default=Path("runs/bench"))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--worlds", type=int, default=64, help="worlds evaluated at once")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    try:
+        from mrchaos.bench import Bench, format_table, parse_families, resolve_policy, write_outputs
+        from mrchaos.checkpoint import CheckpointError
+        from mrchaos.figure import FigureError
+        from mrchaos.figure_io import FigureSet, load_figures
+        from mrchaos.library import builtin_figures
+
+        families = parse_families(args.families)
+        specs = [resolve_policy(p) for p in (args.policy or ["mrchaos"])]
+        if args.figures:
+            sets = [load_figures(p) for p in args.figures]
+        else:
+            sets = [FigureSet("builtin", builtin_figures(), source="built-in library")]
+        bench = Bench(sets, families, args.random_objects, args.seed, args.placement, args.worlds)
+        for fid, why in bench.skipped:
+            print(f"skipped {fid}: {why}", file=sys.stderr)
+        recorder = None
+        if args.record:
+            from mrchaos.actions import ActionGrid
+            from mrchaos.pieces import get_piece_set
+            from mrchaos.raster import View
+            from mrchaos.rerun_logger import EpisodeRecorder
+
+            g = ActionGrid()
+            recorder = EpisodeRecorder(args.record, get_piece_set("tangram7").names, (g.xs, g.ys), View().extent)
+        results = bench.run(specs, recorder)
+        if recorder is not None:
+            recorder.close()
+        results["sources"] = [fs.source for fs in sets]
+        results["random_objects"] = args.random_objects
+        write_outputs(results, families, args.out)
+        _contact_sheet(bench, specs, args.out)
+        print(format_table(results, families))
+        if bench.skipped:
+            print(f"({len(bench.skipped)} figures skipped: see results.md)")
+        print(f"wrote {args.out}/results.{{json,csv,md}} and contact_sheet.png in {time.perf_counter() - t0:.0f} s")
+        return 0
+    except (FigureError, CheckpointError, OSError) as e:
+        print(f"mrchaos-bench: error: {e}", file=sys.stderr)
+        return 2
+    except ValueError as e:  # BenchError and bad values
+        print(f"mrchaos-bench: error: {e}", file=sys.stderr)
+        return 2
+
+
+def _contact_sheet(bench, specs, out: Path, per_family: int = 6) -> None:
+    """Silhouette against final assembly for a sample of each family, first policy (paper's Fig. 6)."""
+    from mrchaos.sheet import pair_sheet, save_png
+
+    pairs = []
+    for fam, (_, ids) in bench.targets.items():
+        res = bench.episodes.get((specs[0].name, fam))
+        if res is None:
+            continue
+        pick = np.linspace(0, len(ids) - 1, min(per_family, len(ids))).round().astype(int)
+        for i in pick:
+            pairs.append((res.silhouettes[i] > 0, res.final_views[i], f"{fam} {ids[i]} F{100 * res.final[i]:.0f}"))
+    if pairs:
+        save_png(pair_sheet(pairs, columns=per_family), out / "contact_sheet.png")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
