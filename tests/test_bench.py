@@ -1,0 +1,114 @@
+import json
+
+import numpy as np
+import pytest
+import shapely
+import torch
+
+from mrchaos.bench import Bench, BenchError, parse_families, resolve_policy
+from mrchaos.cli.bench import main as bench_main
+from mrchaos.evaluate import evaluate
+from mrchaos.geometry import rigid_transform
+from mrchaos.oracle import oracle_actions
+
+from tests.conftest import MRCHAOS104
+
+
+def _independent_metrics(env, targets, actor):
+    """Rela and Final from exact polygon areas (shapely) of the settled footprints, not pixels."""
+    snaps = []
+
+    def spy(e, td):
+        snaps.append((e.worlds.footprint.copy(), e.worlds.placed.copy(), e.next_piece.copy()))
+        return actor(e, td)
+
+    res = evaluate(env, targets, spy)
+    snaps.append((env.worlds.footprint.copy(), env.worlds.placed.copy(), env.next_piece.copy()))
+    ps = env.piece_set
+    twins = ps.twin_matrix()
+    n = len(targets)
+    tpolys = rigid_transform(ps.padded_outlines()[None], targets)
+    rela, final = np.zeros(n), np.zeros(n)
+    for b in range(n):
+        slots = [shapely.Polygon(tpolys[b, j]) for j in range(7)]
+        sil = shapely.union_all(slots)
+        covs = []
+        for t in range(7):
+            foot, placed, _ = snaps[t + 1]
+            piece = shapely.Polygon(foot[b, t]).buffer(0)
+            covs.append(max(piece.intersection(slots[j]).area / slots[j].area for j in np.flatnonzero(twins[t])))
+        rela[b] = np.mean(covs)
+        foot, placed, _ = snaps[-1]
+        occ = shapely.union_all([shapely.Polygon(foot[b, i]).buffer(0) for i in range(7) if placed[b, i]])
+        final[b] = occ.intersection(sil).area / sil.area
+    return res, rela, final
+
+
+@pytest.mark.parametrize("policy", ["oracle", "random"])
+def test_bench_metrics_match_an_independent_computation(policy):
+    bench = Bench([], ["Random"], random_objects=12, seed=3, num_worlds=12)
+    spec = resolve_policy(policy)
+    env = bench.make_env(spec)
+    targets = bench.targets["Random"][0]
+    res, rela, final = _independent_metrics(env, targets, bench.actor(spec, env))
+    # Pixel counts (2.17 mm pixels) against exact areas: agree to a few percent per episode.
+    assert np.abs(res.rela - rela).max() < 0.05
+    assert np.abs(res.final - final).max() < 0.05
+    assert abs(res.rela.mean() - rela.mean()) < 0.015 and abs(res.final.mean() - final.mean()) < 0.015
+    if policy == "oracle":
+        assert rela.mean() > 0.9
+    else:
+        assert rela.mean() < 0.2
+
+
+def test_bench_cli_outputs(tmp_path, capsys):
+    out = tmp_path / "bench"
+    rec = tmp_path / "rec.rrd"
+    args = ["--families", "random,h-hard", "--policy", "oracle", "--policy", "random", "--random-objects", "8",
+            "--out", str(out), "--record", str(rec), "--worlds", "8"]
+    if MRCHAOS104.exists():
+        args += ["--figures", str(MRCHAOS104)]
+    assert bench_main(args) == 0
+    text = capsys.readouterr().out
+    assert "Table I" in text and "oracle (nearest grid; reads the solution)" in text
+    res = json.loads((out / "results.json").read_text())
+    assert set(res["policies"]) == {"oracle", "random"}
+    assert res["counts"]["Random"] == 8
+    o, r = res["policies"]["oracle"]["families"]["Random"], res["policies"]["random"]["families"]["Random"]
+    assert o["final"]["mean"] > r["final"]["mean"] + 0.4
+    assert (out / "results.csv").read_text().startswith("policy,family,metric")
+    assert "Table I" in (out / "results.md").read_text()
+    assert (out / "contact_sheet.png").stat().st_size > 1000
+    assert rec.stat().st_size > 1000
+    # The Random set is the same every run (seeded).
+    again_args = [a if a != str(out) else str(tmp_path / "again") for a in args if a not in ("--record", str(rec))]
+    assert bench_main(again_args) == 0
+    again = json.loads((tmp_path / "again" / "results.json").read_text())
+    assert again["policies"]["random"]["families"]["Random"] == res["policies"]["random"]["families"]["Random"]
+
+
+def test_bench_bad_input(tmp_path, capsys):
+    assert bench_main(["--families", "h-easy", "--policy", "oracle"]) == 2
+    assert "unknown family 'h-easy'" in capsys.readouterr().err
+    assert bench_main(["--policy", str(tmp_path / "nope.pt")]) == 2
+    assert "no such checkpoint" in capsys.readouterr().err
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"corrupt")
+    assert bench_main(["--policy", str(bad), "--random-objects", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "bad.pt" in err and err.count("\n") == 1
+    assert bench_main(["--policy", "oracle", "--figures", str(tmp_path / "missing.json")]) == 2
+    assert "missing.json" in capsys.readouterr().err
+    with pytest.raises(BenchError):
+        parse_families("random,normal")
+
+
+def test_invalid_figures_are_skipped_and_counted(tmp_path, capsys):
+    good = {"id": "ok", "pieces": []}
+    (tmp_path / "set.json").write_text(json.dumps({"figures": [good]}))
+    assert bench_main(["--policy", "oracle", "--figures", str(tmp_path / "set.json"), "--random-objects", "2",
+                       "--out", str(tmp_path / "o"), "--worlds", "2"]) == 0
+    captured = capsys.readouterr()
+    assert "skipped ok" in captured.err and "1 figures skipped" in captured.out
+    res = json.loads((tmp_path / "o" / "results.json").read_text())
+    assert res["skipped"][0][0] == "ok"
