@@ -45,7 +45,8 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     try:
         state = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types for truncated or foreign files
-        raise CheckpointError(f"{p}: not a readable checkpoint ({type(e).__name__}: {str(e)[:200]})") from None
+        first = (str(e).strip().splitlines() or [""])[0][:160]
+        raise CheckpointError(f"{p}: not a readable checkpoint ({type(e).__name__}: {first})") from None
     if not isinstance(state, dict) or state.get("format") != FORMAT or "model" not in state:
         raise CheckpointError(f"{p}: not an mrchaos checkpoint (format {FORMAT})")
     if state.get("half"):
