@@ -1,0 +1,38 @@
+"""Ship a trained run as a named package policy: ``python tools/ship_policy.py runs/full mrchaos``.
+
+Keeps what evaluation needs (weights in fp16, policy and env config, layout
+checks, training counters, the run's eval.json) and drops the optimiser and RNG
+state, so the file stays small. Written to ``mrchaos/data/policies/<name>.pt``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from mrchaos.checkpoint import load_checkpoint, save_checkpoint
+
+KEEP = ("kind", "config", "policy", "piece_set", "obs_shape", "grid", "view_extent", "model", "curriculum",
+        "iteration", "frames", "episodes", "minutes")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("run", type=Path)
+    ap.add_argument("name")
+    args = ap.parse_args()
+    st = load_checkpoint(args.run / "checkpoints" / "last.pt")
+    out = {k: st[k] for k in KEEP if k in st}
+    out["curriculum"] = {k: out["curriculum"][k] for k in ("stage", "switched_at")}
+    ev = args.run / "eval.json"
+    if ev.exists():
+        out["eval"] = json.loads(ev.read_text())
+    dest = Path(__file__).resolve().parents[1] / "mrchaos" / "data" / "policies" / f"{args.name}.pt"
+    save_checkpoint(dest, out, half=True)
+    print(f"wrote {dest} ({dest.stat().st_size / 1e6:.1f} MB) from {args.run}: iteration {st['iteration']}, "
+          f"{st['frames']} frames")
+
+
+if __name__ == "__main__":
+    main()
