@@ -17,6 +17,7 @@ from typing import Any
 
 import yaml
 
+from mrchaos.bc import BCConfig
 from mrchaos.env import EnvConfig
 from mrchaos.policy import PolicyConfig
 from mrchaos.task import TaskConfig
@@ -118,9 +119,10 @@ class CheckpointConfig:
 
 @dataclass
 class TrainConfig:
-    """A whole experiment."""
+    """A whole experiment: ``algo`` "ppo" (the method) or "bc" (behaviour cloning, the baseline)."""
 
     name: str = "run"
+    algo: str = "ppo"
     seed: int = 0
     device: str = "cpu"
     threads: int = 2
@@ -134,6 +136,11 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    bc: BCConfig = field(default_factory=BCConfig)
+
+    def __post_init__(self) -> None:
+        if self.algo not in ("ppo", "bc"):
+            raise ValueError(f"algo must be 'ppo' or 'bc', got {self.algo!r}")
 
     def env_config(self) -> EnvConfig:
         """The env config with the task group folded in."""

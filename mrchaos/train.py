@@ -62,7 +62,8 @@ def evaluate_random(policy, cfg: TrainConfig, n: int = 200, seed: int = 2024) ->
     from mrchaos.chaos import generate
     from mrchaos.evaluate import evaluate, policy_actor
 
-    env_cfg = dataclasses.replace(cfg.env_config(), num_worlds=min(n, 100), action_noise_xy=0.0,
+    task = dataclasses.replace(cfg.task, chaos=1.0, cache=0.0, figures=0.0)
+    env_cfg = dataclasses.replace(cfg.env_config(), task=task, num_worlds=min(n, 100), action_noise_xy=0.0,
                                   action_noise_theta=0.0, camera_jitter=0.0)
     env = TangramEnv(env_cfg, seed=seed)
     targets = generate(env.piece_set, n, np.random.default_rng(seed), cfg.task.chaos_config())[0]

@@ -139,3 +139,19 @@ def test_plot(tmp_path):
         "iteration,frames,episodes,stage,rela\n1,10,5,1,0.1\n2,20,10,1,0.2\n3,30,15,2,0.25\n4,40,16,2,0.3\n")
     assert plot_main([str(run)]) == 0
     assert (run / "learning_curve.png").stat().st_size > 1000
+
+
+def test_behaviour_cloning_smoke(tmp_path, capsys):
+    """conf/bc.yaml's pipeline on a tiny budget: demonstrations, NLL falls, a loadable policy checkpoint."""
+    rc = train_main([str(ROOT / "conf" / "bc.yaml"), f"runs_dir={tmp_path}", "bc.rotations=1", "bc.shifts=0",
+                     "bc.epochs=3", "env.num_worlds=32", "policy.channels=[8,16,16]", "policy.hidden=64"])
+    assert rc == 0
+    assert "behaviour cloning on" in capsys.readouterr().out
+    rows = (tmp_path / "bc" / "metrics.csv").read_text().splitlines()[1:]
+    nll = [float(r.split(",")[1]) for r in rows]
+    assert nll[-1] < nll[0]
+    st = load_checkpoint(tmp_path / "bc" / "checkpoints" / "last.pt")
+    assert st["kind"] == "mrchaos-policy" and st["policy"]["name"] == "paper"
+    from mrchaos.bench import resolve_policy
+
+    assert resolve_policy(str(tmp_path / "bc")).kind == "checkpoint"

@@ -40,6 +40,14 @@ def main(argv: list[str] | None = None) -> int:
                 raise ConfigError(
                     f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another name=..."
                 )
+            if cfg.algo == "bc":
+                from mrchaos.bc import train_bc
+
+                res = train_bc(cfg, run_dir)
+                print(f"{run_dir}: behaviour cloning on {res['samples']} demonstration steps from "
+                      f"{res['figures']} figures, final NLL {res['nll']:.3f}; greedy on {res['n']} Random objects: "
+                      f"Rela {res['rela']:.3f} Final {res['final']:.3f}")
+                return 0
             trainer = Trainer(cfg, run_dir)
         result = trainer.run()
         print(f"{run_dir}: {result['iteration']} iterations, {result['frames']} frames"
