@@ -344,15 +344,7 @@ class TangramEnv(EnvBase):
             batch_size=self.batch_size,
         )
         done = self._done.clone()
-        return TensorDict(
-            observation=obs,
-            info=info,
-            reward=reward.float(),
-            done=done,
-            terminated=done.clone(),
-            truncated=torch.zeros(n, 1, dtype=torch.bool),
-            batch_size=self.batch_size,
-        ) if not fresh else TensorDict(
+        out = TensorDict(
             observation=obs,
             info=info,
             done=done,
@@ -360,3 +352,6 @@ class TangramEnv(EnvBase):
             truncated=torch.zeros(n, 1, dtype=torch.bool),
             batch_size=self.batch_size,
         )
+        if not fresh:
+            out.set("reward", reward.float())
+        return out
