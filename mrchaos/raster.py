@@ -110,10 +110,12 @@ def rasterize(
     yc = torch.arange(h, dtype=torch.float32) + 0.5
     ax, ay = cx[..., None], ry[..., None]  # (B, P, V, 1)
     bx, by = torch.roll(cx, -1, dims=-1)[..., None], torch.roll(ry, -1, dims=-1)[..., None]
-    # Ties (a centre on an edge, up to float32 rounding of ~1e-5 px) resolve by a fixed
-    # shift of 1e-4 px: in on the top and left edges, out on the bottom and right ones.
-    # Ties are common because the action grid and the pixel pitch are commensurate.
-    eps = 1e-4
+    # Ties (a centre on an edge, up to 2e-3 px, about 4 micrometres) follow a fixed rule:
+    # in on the top and left edges, out on the bottom and right ones. Ties are common
+    # because the action grid and the pixel pitch are commensurate, and two pieces
+    # that share an edge up to rounding (figure files keep micrometres) must not
+    # leave a crack between them.
+    eps = 2e-3
     crosses = (torch.minimum(ay, by) - eps <= yc) & (yc < torch.maximum(ay, by) - eps)
     dy = torch.where(by == ay, torch.ones(()), by - ay)
     xi = ax + (yc - ay) * (bx - ax) / dy  # (B, P, V, H)

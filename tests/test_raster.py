@@ -64,6 +64,8 @@ def test_visible_piece_is_the_highest():
         for row in range(30, 90, 2):
             for col in range(30, 90, 2):
                 pt = shapely.Point(xs[col], ys[row])
+                if min(p.exterior.distance(pt) for p in shp[b]) < 1e-5:
+                    continue  # on an edge: the fill rule decides, not containment
                 under = [i for i in range(7) if shp[b][i].contains(pt)]
                 expect = max(under, key=lambda i: heights[b, i]) if under else -1
                 assert int(r.ids[b, row, col]) == expect
