@@ -50,12 +50,15 @@ class CurriculumConfig:
         epsilon: the switch happens when the stage-1 reward has not improved by more
             than this over the last ``window`` iterations.
         min_iters: never switch before this many stage-1 iterations.
+        max_minutes: with a fixed time budget, switch at the latest after this many
+            minutes of training even if stage 1 still improves (0 = no cap).
     """
 
     stages: str = "both"
     window: int = 20
     epsilon: float = 0.01
     min_iters: int = 20
+    max_minutes: float = 0.0
 
     def __post_init__(self) -> None:
         if self.stages not in ("both", "local", "global"):

@@ -96,6 +96,14 @@ class CurriculumTransform(Transform):
             return True
         return False
 
+    def force_switch(self, iteration: int) -> bool:
+        """Switch to stage 2 now (a time cap); returns True if it switched."""
+        if not self.is_local or self.stages != "both":
+            return False
+        self.stage.fill_(GLOBAL)
+        self.switched_at.fill_(iteration)
+        return True
+
     def extra_state(self) -> dict:
         """Everything needed to resume the curriculum (besides the buffers)."""
         return {"history": list(self.history), "rng": self.rng.get_state()}

@@ -43,7 +43,10 @@ def write_atomic(path: str | os.PathLike, data: bytes | str) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    umask = os.umask(0)
+    os.umask(umask)
     try:
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes owner-only files; keep the usual mode
         with os.fdopen(fd, "wb") as f:
             f.write(data.encode() if isinstance(data, str) else data)
             f.flush()
@@ -143,12 +146,12 @@ def load_figures(path: str | os.PathLike, validate: bool = True) -> FigureSet:
 
 
 def figure_to_dict(fig: Figure) -> dict:
-    """Interchange-JSON entry of a figure (vertices rounded to a micrometre)."""
+    """Interchange-JSON entry of a figure (vertices rounded to a nanometre, so touching pieces stay touching)."""
     entry: dict = {"id": fig.id, "name": fig.name}
     if fig.family is not None:
         entry["family"] = fig.family
     entry["pieces"] = [
-        {"piece": n, "vertices": np.round(fig.piece_polygon(i), 6).tolist()}
+        {"piece": n, "vertices": np.round(fig.piece_polygon(i), 9).tolist()}
         for i, n in enumerate(fig.piece_set.names)
     ]
     if fig.has_mirrored:

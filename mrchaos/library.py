@@ -7,6 +7,7 @@ that authors them is ``tools/author_library.py``.
 
 from __future__ import annotations
 
+import copy
 from functools import lru_cache
 from importlib import resources
 
@@ -30,5 +31,5 @@ def _load() -> FigureSet:
 
 
 def builtin_figures() -> list[Figure]:
-    """The built-in figures (validated), in file order."""
-    return list(_load().figures)
+    """The built-in figures (validated), in file order; fresh copies, so callers may edit them."""
+    return [copy.deepcopy(f) for f in _load().figures]

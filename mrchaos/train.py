@@ -291,9 +291,15 @@ class Trainer:
                 self.collector.update_policy_weights_()
 
                 stage = int(self.curriculum.stage)
-                if stage == LOCAL and self.curriculum.update(self.iteration, reward):
+                self.minutes = (time.perf_counter() - started) / 60
+                cap = cfg.curriculum.max_minutes
+                plateau = stage == LOCAL and self.curriculum.update(self.iteration, reward)
+                capped = not plateau and stage == LOCAL and 0 < cap <= self.minutes and \
+                    self.curriculum.force_switch(self.iteration)
+                if plateau or capped:
                     self.stage.fill_(int(self.curriculum.stage))
-                    msg = f"curriculum: stage 1 -> 2 at iteration {self.iteration} ({self.frames} frames)"
+                    why = "stage-1 reward plateaued" if plateau else f"time cap of {cap:g} min"
+                    msg = f"curriculum: stage 1 -> 2 at iteration {self.iteration} ({self.frames} frames; {why})"
                     log.info(msg)
                     if self.rerun is not None:
                         self.rerun.log_text("events", msg, step=self.iteration)
