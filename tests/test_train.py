@@ -98,7 +98,15 @@ def test_smoke_run_and_resume_after_kill(tmp_path):
     assert after["frames"] == saved["frames"] + 256
     rows = _rows(run)
     assert [int(r["iteration"]) for r in rows[rows_before:]] == [it0 + 1, it0 + 2]
-    assert list(run.glob("recording*.rrd"))
+    recordings = list(run.glob("recording*.rrd"))
+    assert len(recordings) == 2  # the first run's and the resumed run's
+    import shutil
+
+    rerun = shutil.which("rerun")
+    assert rerun, "the rerun CLI comes with rerun-sdk"
+    for rec in recordings:
+        r = subprocess.run([rerun, "rrd", "verify", str(rec)], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
     # Weights moved on from the resumed ones, and the optimiser state came along.
     k = next(iter(after["model"]))
     assert not torch.equal(after["model"][k], saved["model"][k])
