@@ -34,6 +34,13 @@ class RerunLogger(Logger):
         stream.save(str(Path(self.log_dir) / self.file_name))
         return stream
 
+    def shutdown(self, timeout: float | None = None) -> None:
+        """Flush and close the file, so it is complete (footer included) before the process ends."""
+        if not self._service_shutdown:
+            self.experiment.flush()
+            self.experiment.disconnect()
+        super().shutdown(timeout)
+
     def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
         if step is not None:
             rr.set_time("iteration", sequence=int(step), recording=self.experiment)
@@ -120,4 +127,6 @@ class EpisodeRecorder:
                 rr.log(f"{base}/reward", rr.Scalars(float(rec["reward"][k])), recording=self.stream)
 
     def close(self) -> None:
+        """Flush and close the file."""
         self.stream.flush()
+        self.stream.disconnect()

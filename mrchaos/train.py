@@ -129,6 +129,8 @@ class Trainer:
             self._restore(self.ckpt_dir / "last.pt")
         self.collector = self._make_collector()
         self.csv_path = self.run_dir / "metrics.csv"
+        if resume and self.csv_path.exists():
+            self._truncate_metrics()
         self.rerun = None
         if cfg.logger.rerun:
             from mrchaos.rerun_logger import RerunLogger
@@ -222,6 +224,15 @@ class Trainer:
         self.stop_requested = True
 
     # ------------------------------------------------------------------ logging
+    def _truncate_metrics(self) -> None:
+        """Drop rows of iterations after the checkpoint (a killed run redoes them)."""
+        with open(self.csv_path, newline="") as f:
+            rows = list(csv.DictReader(f))
+        keep = [r for r in rows if int(r["iteration"]) <= self.iteration]
+        if len(keep) < len(rows):
+            lines = [",".join(CSV_FIELDS)] + [",".join(str(r.get(k, "")) for k in CSV_FIELDS) for r in keep]
+            write_atomic(self.csv_path, "\n".join(lines) + "\n")
+
     def _log(self, row: dict[str, Any], data: TensorDict) -> None:
         new = not self.csv_path.exists()
         with open(self.csv_path, "a", newline="") as f:

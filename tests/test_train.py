@@ -88,8 +88,7 @@ def test_smoke_run_and_resume_after_kill(tmp_path):
     assert (run / "checkpoints" / "last.pt").exists()
     saved = load_checkpoint(run / "checkpoints" / "last.pt")
     it0 = saved["iteration"]
-    assert it0 >= 3
-    rows_before = len(_rows(run))
+    assert it0 >= 2
 
     rc = train_main(["--resume", str(run), "collector.total_frames=" + str(saved["frames"] + 256), "--eval", "0"])
     assert rc == 0
@@ -97,7 +96,8 @@ def test_smoke_run_and_resume_after_kill(tmp_path):
     assert after["iteration"] == it0 + 2  # continued: two more iterations of 128 frames
     assert after["frames"] == saved["frames"] + 256
     rows = _rows(run)
-    assert [int(r["iteration"]) for r in rows[rows_before:]] == [it0 + 1, it0 + 2]
+    # Iterations after the checkpoint were redone, not duplicated.
+    assert [int(r["iteration"]) for r in rows] == list(range(1, it0 + 3))
     recordings = list(run.glob("recording*.rrd"))
     assert len(recordings) == 2  # the first run's and the resumed run's
     import shutil
