@@ -110,8 +110,11 @@ class Trainer:
         self.advantage = GAE(
             gamma=cfg.loss.gamma, lmbda=cfg.loss.lmbda, value_network=self.value, average_gae=False, deactivate_vmap=True
         )
+        # The critic gets only its head: the actor's pass has already written the shared
+        # trunk's output, so the trunk runs once per minibatch instead of twice.
         self.loss = ClipPPOLoss(
-            self.policy, self.value, clip_epsilon=cfg.loss.clip_epsilon, entropy_coeff=cfg.loss.entropy_coeff,
+            self.policy, self.actor_critic.get_value_head(), clip_epsilon=cfg.loss.clip_epsilon,
+            entropy_coeff=cfg.loss.entropy_coeff,
             critic_coeff=cfg.loss.critic_coeff, normalize_advantage=cfg.loss.normalize_advantage,
             loss_critic_type="smooth_l1",
         )
