@@ -35,7 +35,8 @@ FAMILY_NAMES = {f.lower(): f for f in FAMILIES}
 METRICS = ("rela", "final", "iou", "strict_rela")
 #: Learnt policies shipped with the package: name -> (file, label).
 SHIPPED = {
-    "mrchaos": ("mrchaos.pt", "MRChaos (full curriculum)"),
+    "mrchaos": ("mrchaos.pt", "MRChaos (full curriculum, spatial net)"),
+    "mrchaos-paper": ("mrchaos-paper.pt", "MRChaos (full curriculum, paper net)"),
     "mrchaos-wo-local": ("mrchaos-wo-local.pt", "MRChaos w/o local"),
     "mrchaos-wo-global": ("mrchaos-wo-global.pt", "MRChaos w/o global"),
     "bc": ("bc.pt", "BC (trained on the built-in library)"),

@@ -33,14 +33,18 @@ def plot_runs(run_dirs: list[Path], out: Path, window: int = 10) -> None:
         ep = np.array([r["episodes"] for r in rows])
         rela = np.array([r["rela"] for r in rows])
         ok = ~np.isnan(rela)
-        k = max(1, min(window, ok.sum() // 5 or 1))
-        smooth = np.convolve(np.nan_to_num(rela), np.ones(k) / k, mode="same")
-        line, = ax.plot(ep[ok], smooth[ok], label=Path(run).name)
+        ep, rela = ep[ok], rela[ok]
+        k = max(1, min(window, len(rela) // 5))
+        # Trailing mean: each point averages the k iterations up to it (no edge artefacts).
+        smooth = np.convolve(rela, np.ones(k) / k, mode="valid")
+        line, = ax.plot(ep[k - 1 :], smooth, label=Path(run).name)
+        ax.plot(ep, rela, color=line.get_color(), alpha=0.2, lw=0.8)
         stages = [r["stage"] for r in rows]
+        eps_all = [r["episodes"] for r in rows]
         for i in range(1, len(stages)):
             if stages[i] != stages[i - 1]:
-                ax.axvline(ep[i], color=line.get_color(), ls="--", lw=1)
-                ax.text(ep[i], ax.get_ylim()[1] * 0.02 + 0.02, " stage 2", color=line.get_color(), fontsize=8)
+                ax.axvline(eps_all[i], color=line.get_color(), ls="--", lw=1)
+                ax.text(eps_all[i], 0.03, " stage 2", color=line.get_color(), fontsize=8)
     ax.set_xlabel("training episodes")
     ax.set_ylabel("relative coverage (Rela)")
     ax.set_ylim(0, 1)
