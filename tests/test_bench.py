@@ -112,3 +112,25 @@ def test_invalid_figures_are_skipped_and_counted(tmp_path, capsys):
     assert "skipped ok" in captured.err and "1 figures skipped" in captured.out
     res = json.loads((tmp_path / "o" / "results.json").read_text())
     assert res["skipped"][0][0] == "ok"
+
+
+def test_shipped_policy_loads_and_beats_random(tmp_path):
+    out = tmp_path / "o"
+    assert bench_main(["--families", "random", "--policy", "mrchaos", "--policy", "random",
+                       "--random-objects", "16", "--out", str(out), "--worlds", "16"]) == 0
+    res = json.loads((out / "results.json").read_text())["policies"]
+    assert res["mrchaos"]["families"]["Random"]["final"]["mean"] > res["random"]["families"]["Random"]["final"]["mean"] + 0.3
+
+
+def test_mismatched_checkpoint_is_refused(tmp_path, capsys):
+    from mrchaos.bench import shipped_path
+    from mrchaos.checkpoint import load_checkpoint, save_checkpoint
+
+    st = load_checkpoint(shipped_path("mrchaos.pt"))
+    for key, value, msg in [("piece_set", "cans", "piece set"), ("obs_shape", [2, 64, 64], "observation shape")]:
+        bad = dict(st, **{key: value})
+        path = tmp_path / f"{key}.pt"
+        save_checkpoint(path, bad)
+        assert bench_main(["--policy", str(path), "--random-objects", "2", "--families", "random"]) == 2
+        err = capsys.readouterr().err
+        assert msg in err and f"{key}.pt" in err
