@@ -138,7 +138,7 @@ def train_bc(cfg, run_dir: Path) -> dict:
             loss.backward()
             torch.nn.utils.clip_grad_norm_(ac.parameters(), cfg.optim.max_grad_norm)
             opt.step()
-            total += float(loss) * len(idx)
+            total += loss.item() * len(idx)
             count += len(idx)
         rows.append({"epoch": epoch + 1, "nll": total / count})
         log.info("bc epoch %d: nll %.3f", epoch + 1, total / count)
