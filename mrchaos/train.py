@@ -100,7 +100,7 @@ class Trainer:
         self.curriculum: CurriculumTransform = self.env.transform
         base: TangramEnv = self.env.base_env
         self.base = base
-        self.actor_critic = build_actor_critic(cfg.policy, base.grid, base.view, base.action_spec)
+        self.actor_critic = build_actor_critic(cfg.policy, base.grid, base.view, base.action_spec).to(cfg.device)
         self.policy = self.actor_critic.get_policy_operator()
         self.value = self.actor_critic.get_value_operator()
         # What the collector stores: the action and its log-probability, not the
@@ -251,6 +251,7 @@ class Trainer:
                     self.rerun.log_scalar(k, v, step=self.iteration)
             every = max(1, self.cfg.logger.image_every)
             if self.iteration % every == 1 or every == 1:
+                data = data.reshape(-1, data.shape[-1])  # (worlds, time), also for multi-process batches
                 k = min(self.cfg.logger.image_worlds, data.shape[0])
                 self.rerun.log_worlds(
                     self.iteration, data["observation"][:k, -1].numpy(), data["action"][:k, -1].numpy(),

@@ -165,3 +165,12 @@ def test_behaviour_cloning_smoke(tmp_path, capsys):
     from mrchaos.bench import resolve_policy
 
     assert resolve_policy(str(tmp_path / "bc")).kind == "checkpoint"
+
+
+def test_multisync_collector_smoke(tmp_path):
+    """collector.kind=multisync: two worker processes follow the curriculum switch."""
+    rc = train_main([str(SMOKE), f"runs_dir={tmp_path}", "collector.kind=multisync", "collector.workers=2",
+                     "collector.total_frames=768", "--eval", "0"])
+    assert rc == 0
+    rows = _rows(tmp_path / "smoke")
+    assert len(rows) == 6 and {r["stage"] for r in rows} <= {"1", "2"}
