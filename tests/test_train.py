@@ -161,7 +161,7 @@ def test_behaviour_cloning_smoke(tmp_path, capsys):
     nll = [float(r.split(",")[1]) for r in rows]
     assert nll[-1] < nll[0]
     st = load_checkpoint(tmp_path / "bc" / "checkpoints" / "last.pt")
-    assert st["kind"] == "mrchaos-policy" and st["policy"]["name"] == "paper"
+    assert st["kind"] == "mrchaos-policy" and st["policy"]["name"] == "spatial"  # conf/bc.yaml: the default net
     from mrchaos.bench import resolve_policy
 
     assert resolve_policy(str(tmp_path / "bc")).kind == "checkpoint"
