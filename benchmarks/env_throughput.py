@@ -16,9 +16,7 @@ import resource
 import time
 from collections import defaultdict
 
-import numpy as np
 import torch
-from tensordict import TensorDict
 
 import mrchaos.env as env_mod
 from mrchaos.env import EnvConfig, TangramEnv

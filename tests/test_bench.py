@@ -3,13 +3,11 @@ import json
 import numpy as np
 import pytest
 import shapely
-import torch
 
 from mrchaos.bench import Bench, BenchError, parse_families, resolve_policy
 from mrchaos.cli.bench import main as bench_main
 from mrchaos.evaluate import evaluate
 from mrchaos.geometry import rigid_transform
-from mrchaos.oracle import oracle_actions
 
 from tests.conftest import MRCHAOS104
 

@@ -7,7 +7,6 @@ import sys
 from collections import Counter
 from pathlib import Path
 
-import numpy as np
 
 from mrchaos.chaos import ChaosCache, ChaosConfig
 from mrchaos.families import FamilyRule, confusion_table, family_of, silhouette_perimeter_px
