@@ -33,7 +33,15 @@ from torchrl.envs import EnvBase
 
 from mrchaos.actions import ActionGrid
 from mrchaos.geometry import rigid_transform
-from mrchaos.metrics import final_from_joint, gate_angle, gate_penetration, iou_from_joint, joint_counts, shape_reward
+from mrchaos.metrics import (
+    best_slot_coverage,
+    final_from_joint,
+    gate_angle,
+    gate_penetration,
+    iou_from_joint,
+    joint_counts,
+    shape_reward,
+)
 from mrchaos.observation import ObservationConfig, silhouette_image, view_image
 from mrchaos.pieces import get_piece_set
 from mrchaos.raster import View, rasterize
@@ -298,11 +306,7 @@ class TangramEnv(EnvBase):
                                need_height=self.obs_cfg.needs_height)
         joint = joint_counts(raster.ids, self.target_ids, p)
         counts, area = joint[:, 1:, 1:], joint[:, :, 1:].sum(1)
-        ratio = counts.double() / area.clamp(min=1).double()[:, None, :]
-        ratio = torch.where(area[:, None, :] > 0, ratio, torch.zeros(()))
-        allowed = torch.as_tensor(self._twins)
-        best, slot = torch.where(allowed, ratio, torch.full((), -1.0, dtype=torch.float64)).max(-1)
-        coverage = best.clamp(min=0).float()  # (N, P)
+        coverage, slot = best_slot_coverage(counts, area, self._twins)  # (N, P) each
         view = raster
         if self.cfg.camera_jitter > 0 and self._camera is None:
             shift = torch.randn((n, 2), generator=self.rng, dtype=torch.float64).numpy() * self.cfg.camera_jitter

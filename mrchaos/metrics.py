@@ -28,6 +28,8 @@ __all__ = [
     "final_from_joint",
     "iou_from_joint",
     "coverage_counts",
+    "coverage_ratio",
+    "best_slot_coverage",
     "piece_coverage",
     "shape_reward",
     "gate_penetration",
@@ -88,15 +90,27 @@ def iou_from_joint(joint: torch.Tensor) -> torch.Tensor:
     return inter.float() / union.clamp(min=1).float()
 
 
+def coverage_ratio(counts: torch.Tensor, area: torch.Tensor) -> torch.Tensor:
+    """(B, P, P) float64 |p_i ∩ p'_j| / |p'_j|; a slot with no target pixels scores 0."""
+    ratio = counts.double() / area.clamp(min=1).double()[:, None, :]
+    return torch.where(area[:, None, :] > 0, ratio, torch.zeros(()))
+
+
+def best_slot_coverage(
+    counts: torch.Tensor, area: torch.Tensor, twins: np.ndarray | torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, P) float coverage of each piece over the slots it may fill, and (B, P) the best slot."""
+    allowed = torch.as_tensor(np.asarray(twins), dtype=torch.bool)
+    best, slot = torch.where(allowed, coverage_ratio(counts, area), torch.full((), -1.0, dtype=torch.float64)).max(-1)
+    return best.clamp(min=0).float(), slot
+
+
 def piece_coverage(counts: torch.Tensor, area: torch.Tensor, twins: np.ndarray | torch.Tensor) -> torch.Tensor:
     """(B, P) float coverage of each piece: best over the slots it may fill of |p_i ∩ p'_j| / |p'_j|.
 
     ``twins`` is the piece set's (P, P) twin matrix. A slot with no target pixels scores 0.
     """
-    ratio = counts.double() / area.clamp(min=1).double()[:, None, :]
-    ratio = torch.where(area[:, None, :] > 0, ratio, torch.zeros(()))
-    allowed = torch.as_tensor(np.asarray(twins), dtype=torch.bool)
-    return torch.where(allowed, ratio, torch.zeros(())).amax(-1).float()
+    return best_slot_coverage(counts, area, twins)[0]
 
 
 def shape_reward(coverage: torch.Tensor, shaped: torch.Tensor, threshold: float = 0.5) -> torch.Tensor:
@@ -153,9 +167,7 @@ def strict_rela(cur: torch.Tensor, tgt: torch.Tensor, twin_groups: tuple[tuple[i
     Each twin group takes the permutation of its slots that maximises its total
     coverage, so two twins on one slot cannot both score.
     """
-    counts, area = coverage_counts(cur, tgt, num_pieces)
-    ratio = counts.double() / area.clamp(min=1).double()[:, None, :]
-    ratio = torch.where(area[:, None, :] > 0, ratio, torch.zeros(()))
+    ratio = coverage_ratio(*coverage_counts(cur, tgt, num_pieces))
     total = torch.zeros(cur.shape[0], dtype=torch.float64)
     grouped = {i for g in twin_groups for i in g}
     for i in range(num_pieces):
