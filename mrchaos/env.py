@@ -219,7 +219,7 @@ class TangramEnv(EnvBase):
             raise ValueError(f"preassembled must be in [0, {p - 1}], got {k.tolist()}")
         if len(rows):
             self._reset_rows(rows, k[rows], horizon[rows])
-        return self._observe(torch.zeros(n, 1), done_rows=rows, fresh=True)
+        return self._observe(fresh=True)
 
     def _reset_rows(self, rows: np.ndarray, k: np.ndarray, horizon: np.ndarray) -> None:
         tasks = self.sampler.sample(len(rows), self._np_rng)
@@ -280,24 +280,22 @@ class TangramEnv(EnvBase):
             res = self.worlds.place(rows, piece[rows], poses[rows])
             physics[rows], penetration[rows] = res.physics, res.penetration
             self.next_piece[rows] += 1
-        out = self._observe(torch.zeros(n, 1), done_rows=np.zeros(0, np.int64), fresh=False,
-                            piece=piece, acted=rows, commanded=commanded, penetration=penetration)
-        out.set(("info", "physics"), torch.as_tensor(physics)[:, None])
-        out.set(("info", "penetration"), torch.as_tensor(penetration, dtype=torch.float32)[:, None])
-        return out
+        return self._observe(fresh=False, piece=piece, acted=rows, commanded=commanded, physics=physics,
+                             penetration=penetration)
 
     # ------------------------------------------------------------------ outputs
     def _observe(
         self,
-        reward: torch.Tensor,
-        done_rows: np.ndarray,
         fresh: bool,
         piece: np.ndarray | None = None,
         acted: np.ndarray | None = None,
         commanded: np.ndarray | None = None,
+        physics: np.ndarray | None = None,
         penetration: np.ndarray | None = None,
     ) -> TensorDictBase:
+        """Observation, info, reward (unless ``fresh``, i.e. a reset) and done flags of every world."""
         n, p = self.cfg.num_worlds, self.num_pieces
+        reward = torch.zeros(n, 1)
         w = self.worlds
         if self._camera is not None:
             raster = self._camera.render(np.arange(n))
@@ -342,8 +340,9 @@ class TangramEnv(EnvBase):
             step_coverage=step_cov.float(),
             final=final_from_joint(joint)[:, None],
             iou=iou_from_joint(joint)[:, None],
-            physics=torch.zeros(n, 1, dtype=torch.bool),
-            penetration=torch.zeros(n, 1),
+            physics=torch.zeros(n, 1, dtype=torch.bool) if physics is None else torch.as_tensor(physics)[:, None],
+            penetration=torch.zeros(n, 1) if penetration is None
+            else torch.as_tensor(penetration, dtype=torch.float32)[:, None],
             piece=pieces,
             batch_size=self.batch_size,
         )
