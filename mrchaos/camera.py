@@ -11,6 +11,7 @@ so it serves to check the rasteriser and for users who want rendered images.
 from __future__ import annotations
 
 import atexit
+import os
 
 import mujoco
 import numpy as np
@@ -33,6 +34,14 @@ class MujocoCamera:
     """
 
     def __init__(self, worlds, view: View = View(), camera: str = "overhead_ortho") -> None:
+        from mujoco.rendering.classic import gl_context
+
+        backend = os.environ.get("MUJOCO_GL", "")
+        if not os.environ.get("DISPLAY") and getattr(gl_context, "_MUJOCO_GL", backend) not in ("osmesa", "egl"):
+            raise RuntimeError(
+                "the MuJoCo camera needs headless OpenGL, but mujoco was imported before MUJOCO_GL was set "
+                "(torchrl imports it): set MUJOCO_GL=osmesa in the environment, or import mrchaos first"
+            )
         self.worlds = worlds
         self.view = view
         self.camera = camera

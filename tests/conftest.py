@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+
+# MuJoCo fixes its OpenGL backend when first imported, and test modules import torchrl
+# (which imports mujoco) before mrchaos: choose headless rendering before any of them.
+if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
+    os.environ["MUJOCO_GL"] = "osmesa"
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 MRCHAOS104 = SHARED / "figures" / "mrchaos104.json"
