@@ -25,7 +25,7 @@ from tensordict import TensorDict
 
 from mrchaos.checkpoint import save_checkpoint
 from mrchaos.env import TangramEnv
-from mrchaos.evaluate import FixedTargets
+from mrchaos.evaluate import evaluate
 from mrchaos.figure import Figure
 from mrchaos.figure_io import write_atomic
 from mrchaos.geometry import rigid_transform
@@ -81,21 +81,10 @@ def augment(figures: list[Figure], rotations: int, shifts: int, max_shift: float
 
 def demonstrations(env: TangramEnv, targets: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     """Observations (M*P, 2, H, W) uint8 and oracle grid actions (M*P, 3) along each assembly."""
-    obs, acts = [], []
-    n = env.cfg.num_worlds
-    for start in range(0, len(targets), n):
-        chunk = targets[start : start + n]
-        m = len(chunk)
-        padded = np.concatenate([chunk, np.repeat(chunk[-1:], n - m, 0)]) if m < n else chunk
-        env.sampler = FixedTargets(padded)
-        td = env.reset()
-        for _ in range(env.num_pieces):
-            a = oracle_actions(env)
-            obs.append(td["observation"][:m].clone())
-            acts.append(a[:m].clone())
-            nxt = env.step(td.set("action", a))["next"]
-            td = TensorDict(observation=nxt["observation"], batch_size=env.batch_size)
-    return torch.cat(obs), torch.cat(acts)
+    res = evaluate(env, targets, lambda e, td: oracle_actions(e), record_steps=True)
+    obs = torch.cat([torch.from_numpy(s["observation"]) for s in res.steps])
+    acts = torch.cat([torch.from_numpy(s["action"]) for s in res.steps])
+    return obs, acts
 
 
 def train_bc(cfg, run_dir: Path) -> dict:
