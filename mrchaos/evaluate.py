@@ -18,6 +18,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mrchaos.env import TangramEnv
 from mrchaos.metrics import strict_rela
+from mrchaos.raster import rasterize
 from mrchaos.task import TaskBatch
 
 __all__ = ["EpisodeResults", "evaluate", "FixedTargets"]
@@ -97,8 +98,6 @@ def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: b
             out["final"].append(nxt["info", "final"][:m, 0].numpy())
             out["iou"].append(nxt["info", "iou"][:m, 0].numpy())
             # Strict Rela from the final scene's piece-id image.
-            from mrchaos.raster import rasterize
-
             w = env.worlds
             ids = rasterize(w.footprint, env.view, visible=w.placed, heights=w.top).ids
             out["strict"].append(strict_rela(ids, env.target_ids, env.piece_set.twins, p)[:m].numpy())

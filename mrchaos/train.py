@@ -211,7 +211,7 @@ class Trainer:
         self.episodes, self.minutes = st["episodes"], st["minutes"]
         log.info("resumed %s at iteration %d, %d frames, stage %d", path, self.iteration, self.frames, cur["stage"])
 
-    def save(self, final: bool = False) -> Path:
+    def save(self) -> Path:
         """Write ``last.pt`` and a numbered checkpoint (keeping the newest ``checkpoint.keep``)."""
         state = self.state()
         numbered = self.ckpt_dir / f"iter{self.iteration:06d}.pt"
@@ -346,7 +346,7 @@ class Trainer:
             if bar is not None:
                 bar.close()
             self.collector.shutdown()
-            self.save(final=True)
+            self.save()
             if self.rerun is not None:
                 self.rerun.close()
         return {"iteration": self.iteration, "frames": self.frames, "stopped": self.stop_requested}
