@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-__all__ = ["View", "Raster", "rasterize", "silhouette"]
+__all__ = ["View", "Raster", "rasterize"]
 
 
 @dataclass(frozen=True)
@@ -196,8 +196,3 @@ def _highest_bit(mask: torch.Tensor) -> torch.Tensor:
         e -= 127
     # Zero has a zero exponent field, i.e. minus the bias here.
     return e.clamp_(min=-1)
-
-
-def silhouette(polygons: np.ndarray | torch.Tensor, view: View = View()) -> torch.Tensor:
-    """(B, H, W) bool union of all polygons of each scene."""
-    return rasterize(polygons, view).occupied

@@ -319,7 +319,6 @@ class Trainer:
                     if self.rerun is not None:
                         self.rerun.log_text("events", msg, step=self.iteration)
                 update_s = time.perf_counter() - t_update
-                self.minutes = (time.perf_counter() - started) / 60
                 row = {
                     "iteration": self.iteration, "frames": self.frames, "episodes": self.episodes,
                     "minutes": round(self.minutes, 3), "sps": data.numel() / (collect_s + update_s),

@@ -128,12 +128,6 @@ class Worlds:
         self._refresh(np.arange(n))
 
     # ----------------------------------------------------------------- state io
-    def piece_qpos(self, rows: np.ndarray, piece: np.ndarray | int) -> np.ndarray:
-        """(len(rows), 7) position + quaternion of one piece per row."""
-        piece = np.broadcast_to(np.asarray(piece), rows.shape)
-        cols = 7 * piece[:, None] + np.arange(7)
-        return self.qpos[rows[:, None], cols]
-
     def _write_flat(
         self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, z: np.ndarray, vz: float = 0.0
     ) -> None:
@@ -143,13 +137,6 @@ class Worlds:
         vcols = 6 * piece[:, None] + np.arange(6)
         self.qvel[rows[:, None], vcols] = 0.0
         self.qvel[rows, 6 * piece + 2] = vz
-
-    def planar_poses(self) -> np.ndarray:
-        """(N, P, 3) x, y and yaw of every piece (yaw of the body's x axis)."""
-        q = self.qpos.reshape(self.n, -1, 7)
-        w, x, y, z = q[..., 3], q[..., 4], q[..., 5], q[..., 6]
-        yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-        return np.stack([q[..., 0], q[..., 1], yaw], -1)
 
     def _refresh(self, rows: np.ndarray) -> None:
         """Recompute footprints and top heights of the given worlds from qpos."""
