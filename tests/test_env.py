@@ -6,7 +6,8 @@ from torchrl.envs.utils import check_env_specs
 
 from mrchaos.env import EnvConfig, TangramEnv
 from mrchaos.oracle import oracle_actions, oracle_poses
-from mrchaos.task import TaskBatch, TaskConfig
+from mrchaos.evaluate import FixedTargets
+from mrchaos.task import TaskConfig
 
 SMALL_TASK = TaskConfig(cache_size=64)
 
@@ -94,14 +95,6 @@ def test_bad_actions_are_rejected():
         env.step(TensorDict(action=torch.tensor([[0, 0, 0], [0, 0, 8]]), batch_size=[2]))
     with pytest.raises(ValueError, match="out of range"):
         env.step(TensorDict(action=torch.tensor([[-1, 0, 0], [0, 0, 0]]), batch_size=[2]))
-
-
-class FixedTargets:
-    def __init__(self, poses):
-        self.poses = poses
-
-    def sample(self, n, rng):
-        return TaskBatch(self.poses[:n], np.full(n, 2), np.arange(n))
 
 
 def _oracle_episode(env, exact):
