@@ -19,6 +19,7 @@ import numpy as np
 
 from mrchaos.pieces import PieceSet
 from mrchaos.raster import View
+from mrchaos.robot import Robot, RobotConfig, attach_robot
 
 __all__ = ["SceneConfig", "build_scene_xml", "build_model", "staging_poses", "CAMERA_HEIGHT"]
 
@@ -139,6 +140,28 @@ def build_scene_xml(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view:
 '''
 
 
-def build_model(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view: View = View()) -> mujoco.MjModel:
-    """Compile the scene of a piece set."""
-    return mujoco.MjModel.from_xml_string(build_scene_xml(piece_set, cfg, view))
+def build_model(
+    piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view: View = View(), robot: RobotConfig | None = None
+) -> mujoco.MjModel:
+    """Compile the scene of a piece set, with the UR5e and its suction cup when ``robot`` is given.
+
+    With a robot, the ``home`` keyframe holds the arm at its ready pose (TCP at
+    ``robot.ready``, pointing down), with the actuators commanding that pose.
+    """
+    if robot is None:
+        return mujoco.MjModel.from_xml_string(build_scene_xml(piece_set, cfg, view))
+    spec = mujoco.MjSpec.from_string(build_scene_xml(piece_set, cfg, view))
+    attach_robot(spec, list(piece_set.names), robot)
+    model = spec.compile()
+    arm = Robot(model, robot)
+    # Elbow up, wrist down: the branch of the UR's usual home posture.
+    q, ok = arm.solve(np.array([robot.ready]), np.array([0.0]), np.array([[0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]]))
+    if not ok[0]:
+        raise ValueError(f"robot.ready {robot.ready} is out of the arm's reach from robot.mount {robot.mount}")
+    key = spec.key("home")
+    qpos = np.array(key.qpos, dtype=np.float64)
+    qpos[arm.qadr] = q[0]
+    ctrl = np.zeros(model.nu)
+    ctrl[arm.actuators] = q[0]
+    key.qpos, key.ctrl = qpos.tolist(), ctrl.tolist()
+    return spec.compile()

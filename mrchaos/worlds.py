@@ -24,6 +24,8 @@ import shapely
 from mrchaos.geometry import convex_penetration, rigid_transform
 from mrchaos.pieces import PieceSet
 from mrchaos.raster import View
+from mrchaos.executor import ExecutionResult, Executor, ExecutorConfig
+from mrchaos.robot import Robot, RobotConfig
 from mrchaos.scene import SceneConfig, build_model, staging_poses
 
 __all__ = ["PhysicsConfig", "Worlds", "PlacementResult"]
@@ -61,12 +63,14 @@ class PlacementResult:
     """What a placement did, per world of the call.
 
     Attributes:
-        physics: True where physics ran (the footprint was not free).
+        physics: True where physics ran (the footprint was not free, or the robot placed it).
         penetration: how deep the placed piece ends inside another (m), >= 0.
+        robot: what the robot did, with robot placement; None with teleport.
     """
 
     physics: np.ndarray
     penetration: np.ndarray
+    robot: ExecutionResult | None = None
 
 
 def _quat_yaw(theta: np.ndarray) -> np.ndarray:
@@ -86,7 +90,10 @@ def _quat_to_mat(q: np.ndarray) -> np.ndarray:
 
 
 class Worlds:
-    """N worlds of one piece set, with teleport placement and MuJoCo settling.
+    """N worlds of one piece set, with teleport or robot placement and MuJoCo physics.
+
+    With ``robot`` given, the scene holds the UR5e and :meth:`place` has it pick and
+    place every piece (:class:`mrchaos.executor.Executor`); otherwise pieces teleport.
 
     Attributes kept per world (numpy, updated by :meth:`reset` and :meth:`place`):
         placed: (N, P) bool, pieces on the table (not in the staging area).
@@ -101,16 +108,21 @@ class Worlds:
         physics: PhysicsConfig = PhysicsConfig(),
         scene: SceneConfig = SceneConfig(),
         view: View = View(),
+        robot: RobotConfig | None = None,
+        executor: ExecutorConfig = ExecutorConfig(),
     ) -> None:
         self.piece_set = piece_set
         self.n = n
         self.cfg = physics
-        self.model = build_model(piece_set, scene, view)
+        self.model = build_model(piece_set, scene, view, robot)
         # Sleeping islands need one MjData per world (persistent).
         self.batch = mujoco.batch.Batch(self.model, nsim=n, nthread=physics.nthread, persistent=True)
         self.qpos = self.batch.bind("qpos")
         self.qvel = self.batch.bind("qvel")
         p = len(piece_set)
+        bodies = np.array([self.model.body(name).id for name in piece_set.names])
+        self._qadr = self.model.jnt_qposadr[self.model.body_jntadr[bodies]]
+        self._dadr = self.model.jnt_dofadr[self.model.body_jntadr[bodies]]
         self._outlines = piece_set.padded_outlines()  # (P, V, 2)
         self._v = self._outlines.shape[1]
         self._thick = np.array([pc.thickness for pc in piece_set.pieces])
@@ -124,6 +136,10 @@ class Worlds:
         self.top = np.zeros((n, p))
         self.count_fast = 0
         self.count_physics = 0
+        self.executor = None
+        if robot is not None:
+            period = np.array([pc.symmetry_period for pc in piece_set.pieces])
+            self.executor = Executor(self.batch, Robot(self.model, robot), bodies, self._thick, period, executor)
         self.batch.reset(keyframe=0)
         self._refresh(np.arange(n))
 
@@ -131,16 +147,16 @@ class Worlds:
     def _write_flat(
         self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, z: np.ndarray, vz: float = 0.0
     ) -> None:
-        cols = 7 * piece[:, None] + np.arange(7)
+        cols = self._qadr[piece][:, None] + np.arange(7)
         q = np.concatenate([pose[:, :2], z[:, None], _quat_yaw(pose[:, 2])], 1)
         self.qpos[rows[:, None], cols] = q
-        vcols = 6 * piece[:, None] + np.arange(6)
+        vcols = self._dadr[piece][:, None] + np.arange(6)
         self.qvel[rows[:, None], vcols] = 0.0
-        self.qvel[rows, 6 * piece + 2] = vz
+        self.qvel[rows, self._dadr[piece] + 2] = vz
 
     def _refresh(self, rows: np.ndarray) -> None:
         """Recompute footprints and top heights of the given worlds from qpos."""
-        q = self.qpos[rows].reshape(len(rows), -1, 7)
+        q = self.qpos[rows][:, self._qadr[:, None] + np.arange(7)]
         rot = _quat_to_mat(q[..., 3:])  # (R, P, 3, 3)
         verts = np.einsum("rpij,pvj->rpvi", rot, self._prism) + q[..., None, :3]  # (R, P, 2V, 3)
         self.top[rows] = verts[..., 2].max(-1)
@@ -190,6 +206,8 @@ class Worlds:
         others[np.arange(m), piece] = False
         depth = convex_penetration(foot[:, None], self.footprint[rows])  # (m, P)
         under = others & (depth > self.cfg.free_tolerance)
+        if self.executor is not None:
+            return self._place_robot(rows, piece, pose, under, depth)
         free = ~under.any(1)
         half = self._thick[piece] / 2
         # Fast path: the piece lands flat on the table, exactly where a settle would put it.
@@ -227,6 +245,19 @@ class Worlds:
         if len(ph):  # a free footprint cannot end inside anything
             penetration[ph] = self._penetration(rows[ph], piece[ph])
         return PlacementResult(physics=~free, penetration=penetration)
+
+    def _place_robot(self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, under: np.ndarray,
+                     depth: np.ndarray) -> PlacementResult:
+        """The robot places the pieces; the release height clears what lies under the target."""
+        deep = under & (depth > self.cfg.push_depth)
+        floor = np.where(deep, self.top[rows], 0.0).max(1)
+        travel = np.where(self.placed[rows], self.top[rows], 0.0).max(1)
+        res = self.executor.execute(rows, piece, pose, floor, travel)
+        self.placed[rows, piece] = True
+        self._refresh(rows)
+        self.count_physics += len(rows)
+        return PlacementResult(physics=np.ones(len(rows), dtype=bool),
+                               penetration=self._penetration(rows, piece), robot=res)
 
     def _penetration(self, rows: np.ndarray, piece: np.ndarray) -> np.ndarray:
         """Depth of the placed piece inside any other placed piece: planar overlap where the
