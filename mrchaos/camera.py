@@ -20,7 +20,19 @@ import torch
 from mrchaos.raster import Raster, View
 from mrchaos.scene import CAMERA_HEIGHT
 
-__all__ = ["MujocoCamera"]
+__all__ = ["MujocoCamera", "require_headless_gl"]
+
+
+def require_headless_gl() -> None:
+    """Raise a clear error when MuJoCo picked a windowed OpenGL backend on a machine without a display."""
+    from mujoco.rendering.classic import gl_context
+
+    backend = os.environ.get("MUJOCO_GL", "")
+    if not os.environ.get("DISPLAY") and getattr(gl_context, "_MUJOCO_GL", backend) not in ("osmesa", "egl"):
+        raise RuntimeError(
+            "MuJoCo rendering needs headless OpenGL, but mujoco was imported before MUJOCO_GL was set "
+            "(torchrl imports it): set MUJOCO_GL=osmesa in the environment, or import mrchaos first"
+        )
 
 
 class MujocoCamera:
@@ -34,14 +46,7 @@ class MujocoCamera:
     """
 
     def __init__(self, worlds, view: View = View(), camera: str = "overhead_ortho") -> None:
-        from mujoco.rendering.classic import gl_context
-
-        backend = os.environ.get("MUJOCO_GL", "")
-        if not os.environ.get("DISPLAY") and getattr(gl_context, "_MUJOCO_GL", backend) not in ("osmesa", "egl"):
-            raise RuntimeError(
-                "the MuJoCo camera needs headless OpenGL, but mujoco was imported before MUJOCO_GL was set "
-                "(torchrl imports it): set MUJOCO_GL=osmesa in the environment, or import mrchaos first"
-            )
+        require_headless_gl()
         self.worlds = worlds
         self.view = view
         self.camera = camera

@@ -45,11 +45,15 @@ from mrchaos.metrics import (
 from mrchaos.observation import ObservationConfig, silhouette_image, view_image
 from mrchaos.pieces import get_piece_set
 from mrchaos.raster import View, rasterize
+from mrchaos.robot import RobotConfig
 from mrchaos.scene import SceneConfig
 from mrchaos.task import TaskConfig, TaskSampler
 from mrchaos.worlds import PhysicsConfig, Worlds
 
-__all__ = ["EnvConfig", "TangramEnv"]
+__all__ = ["EnvConfig", "TangramEnv", "ROBOT_FAILURES"]
+
+#: Failure flags of robot placement in the step info (always False with teleport placement).
+ROBOT_FAILURES = ("unreachable", "missed", "dropped", "collision")
 
 
 @dataclass
@@ -63,6 +67,10 @@ class EnvConfig:
         grid_nx, grid_ny, grid_ntheta, grid_half_range: the action grid.
         view_mode, height_levels: current-view encoding (see :mod:`mrchaos.observation`).
         camera: "raster" (fast orthographic rasteriser) or "mujoco" (MuJoCo's renderer).
+        placement: "teleport" (pieces are set down at the pose) or "robot" (the UR5e picks
+            and places them, see :mod:`mrchaos.executor`).
+        robot_model: UR5e MJCF for robot placement; empty for the package's own, or
+            MuJoCo Menagerie's ``universal_robots_ur5e/ur5e.xml``.
         settle_steps, release_gap, push_depth, nthread: placement physics (see
             :class:`mrchaos.worlds.PhysicsConfig`).
         reward_shaping, shaping_threshold: coverage below the threshold pays 0 and
@@ -87,6 +95,8 @@ class EnvConfig:
     view_mode: str = "binary"
     height_levels: int = 3
     camera: str = "raster"
+    placement: str = "teleport"
+    robot_model: str = ""
     settle_steps: int = 20
     release_gap: float = 0.002
     push_depth: float = 0.001
@@ -105,6 +115,8 @@ class EnvConfig:
     def __post_init__(self) -> None:
         if self.camera not in ("raster", "mujoco"):
             raise ValueError(f"env.camera must be 'raster' or 'mujoco', got {self.camera!r}")
+        if self.placement not in ("teleport", "robot"):
+            raise ValueError(f"env.placement must be 'teleport' or 'robot', got {self.placement!r}")
         if self.num_worlds < 1:
             raise ValueError(f"env.num_worlds must be >= 1, got {self.num_worlds}")
 
@@ -131,7 +143,8 @@ class TangramEnv(EnvBase):
         physics = PhysicsConfig(
             settle_steps=cfg.settle_steps, release_gap=cfg.release_gap, push_depth=cfg.push_depth, nthread=cfg.nthread
         )
-        self.worlds = Worlds(self.piece_set, cfg.num_worlds, physics, SceneConfig(), self.view)
+        robot = RobotConfig(model=cfg.robot_model) if cfg.placement == "robot" else None
+        self.worlds = Worlds(self.piece_set, cfg.num_worlds, physics, SceneConfig(), self.view, robot)
         self.sampler = TaskSampler(self.piece_set, cfg.task, figures)
         self._camera = None
         if cfg.camera == "mujoco":
@@ -171,6 +184,7 @@ class TangramEnv(EnvBase):
             physics=Categorical(2, shape=(n, 1), dtype=torch.bool),
             penetration=Unbounded(shape=(n, 1), dtype=torch.float32),
             piece=Unbounded(shape=(n, 1), dtype=torch.int64),
+            **{k: Categorical(2, shape=(n, 1), dtype=torch.bool) for k in ROBOT_FAILURES},
             shape=bs,
         )
         self.observation_spec = Composite(
@@ -276,12 +290,34 @@ class TangramEnv(EnvBase):
         piece = self.next_piece.copy()
         physics = np.zeros(n, dtype=bool)
         penetration = np.zeros(n)
+        failures = {k: np.zeros(n, dtype=bool) for k in ROBOT_FAILURES}
         if len(rows):
             res = self.worlds.place(rows, piece[rows], poses[rows])
             physics[rows], penetration[rows] = res.physics, res.penetration
+            if res.robot is not None:
+                for k in ROBOT_FAILURES:
+                    failures[k][rows] = getattr(res.robot, k)
             self.next_piece[rows] += 1
         return self._observe(fresh=False, piece=piece, acted=rows, commanded=commanded, physics=physics,
-                             penetration=penetration)
+                             penetration=penetration, failures=failures)
+
+    def perturb(self, rows: np.ndarray, distance: float) -> None:
+        """Push one placed piece of each world in ``rows`` away, ``distance`` metres in a random direction.
+
+        The piece is the most recently placed one; physics moves it (and whatever it hits).
+        The next observation shows the result; the episode goes on from there.
+        """
+        rows = np.asarray(rows, dtype=np.int64)
+        rows = rows[self.next_piece[rows] > 0]
+        if len(rows) == 0:
+            return
+        angle = torch.rand(len(rows), generator=self.rng, dtype=torch.float64).numpy() * 2 * math.pi
+        self.worlds.push(rows, self.next_piece[rows] - 1, np.c_[np.cos(angle), np.sin(angle)] * distance)
+
+    def current(self) -> TensorDictBase:
+        """Observation and info of every world as they are now (no step, no reward)."""
+        out = self._observe(fresh=True)
+        return out.exclude("done", "terminated", "truncated")
 
     # ------------------------------------------------------------------ outputs
     def _observe(
@@ -292,6 +328,7 @@ class TangramEnv(EnvBase):
         commanded: np.ndarray | None = None,
         physics: np.ndarray | None = None,
         penetration: np.ndarray | None = None,
+        failures: dict[str, np.ndarray] | None = None,
     ) -> TensorDictBase:
         """Observation, info, reward (unless ``fresh``, i.e. a reset) and done flags of every world."""
         n, p = self.cfg.num_worlds, self.num_pieces
@@ -344,6 +381,8 @@ class TangramEnv(EnvBase):
             penetration=torch.zeros(n, 1) if penetration is None
             else torch.as_tensor(penetration, dtype=torch.float32)[:, None],
             piece=pieces,
+            **{k: torch.as_tensor(failures[k])[:, None] if failures else torch.zeros(n, 1, dtype=torch.bool)
+               for k in ROBOT_FAILURES},
             batch_size=self.batch_size,
         )
         done = self._done.clone()

@@ -16,7 +16,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from mrchaos.env import TangramEnv
+from mrchaos.env import ROBOT_FAILURES, TangramEnv
 from mrchaos.metrics import strict_rela
 from mrchaos.raster import rasterize
 from mrchaos.task import TaskBatch
@@ -49,6 +49,8 @@ class EpisodeResults:
     step_coverage: np.ndarray  # (n, j)
     silhouettes: np.ndarray  # (n, H, W) uint8
     final_views: np.ndarray  # (n, H, W) uint8
+    failures: dict[str, np.ndarray] | None = None  # robot failure counts per episode
+    perturbation: dict[str, np.ndarray] | None = None  # Final and pushed-piece coverage around the push
     steps: list[dict] | None = None
 
 
@@ -65,10 +67,19 @@ def policy_actor(policy) -> Actor:
     return act
 
 
-def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: bool = False) -> EpisodeResults:
-    """Run one episode per target on ``env`` (in chunks of its world count) and collect metrics."""
+def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: bool = False,
+             perturb_after: int | None = None, perturb_distance: float = 0.05,
+             on_step: Callable[[int, int, TensorDict], None] | None = None) -> EpisodeResults:
+    """Run one episode per target on ``env`` (in chunks of its world count) and collect metrics.
+
+    With ``perturb_after = t``, the piece placed at step t is pushed ``perturb_distance``
+    metres away right after it lands (the paper's Fig. 6C); the policy goes on from what
+    it then sees. ``on_step(start, t, next)`` sees every step's output (for recordings).
+    """
     n, nw, p = len(targets), env.cfg.num_worlds, env.num_pieces
-    out = {k: [] for k in ("rela", "final", "iou", "strict", "cov", "sil", "view")}
+    if perturb_after is not None and not 0 <= perturb_after < p:
+        raise ValueError(f"perturb_after must be in [0, {p - 1}], got {perturb_after}")
+    out = {k: [] for k in ("rela", "final", "iou", "strict", "cov", "sil", "view", "fail", "pert")}
     steps: list[dict] = []
     saved = env.sampler
     try:
@@ -79,10 +90,24 @@ def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: b
             env.sampler = FixedTargets(padded)
             td = env.reset()
             cov = []
+            fail = {k: torch.zeros(nw, dtype=torch.int64) for k in ROBOT_FAILURES}
+            pert = {}
             for t in range(p):
                 action = actor(env, td)
                 nxt = env.step(td.set("action", action))["next"]
                 cov.append(nxt["info", "step_coverage"][:, 0])
+                for k in ROBOT_FAILURES:
+                    fail[k] += nxt["info", k][:, 0].long()
+                if t == perturb_after:
+                    pert["final_before"] = nxt["info", "final"][:m, 0].numpy().copy()
+                    pert["coverage_before"] = nxt["info", "coverage"][:m, t].numpy().copy()
+                    env.perturb(np.arange(nw), perturb_distance)
+                    now = env.current()
+                    pert["final_after"] = now["info", "final"][:m, 0].numpy().copy()
+                    pert["coverage_after"] = now["info", "coverage"][:m, t].numpy().copy()
+                    nxt = nxt.update(now)
+                if on_step is not None:
+                    on_step(start, t, nxt)
                 if record_steps:
                     steps.append({
                         "episode": np.arange(start, start + m), "t": t,
@@ -103,11 +128,20 @@ def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: b
             out["strict"].append(strict_rela(ids, env.target_ids, env.piece_set.twins, p)[:m].numpy())
             out["sil"].append(env.silhouette[:m].numpy().copy())
             out["view"].append(nxt["observation"][:m, 1].numpy().copy())
+            out["fail"].append({k: v[:m].numpy() for k, v in fail.items()})
+            if pert:
+                pert["final_end"] = nxt["info", "final"][:m, 0].numpy().copy()
+                out["pert"].append(pert)
     finally:
         env.sampler = saved
-    cat = {k: np.concatenate(v) for k, v in out.items()}
+    cat = {k: np.concatenate(v) for k, v in out.items() if k not in ("fail", "pert")}
+
+    def merge(dicts: list[dict]) -> dict[str, np.ndarray] | None:
+        return {k: np.concatenate([d[k] for d in dicts]) for k in dicts[0]} if dicts else None
+
     return EpisodeResults(
         rela=cat["rela"], final=cat["final"], iou=cat["iou"], strict_rela=cat["strict"],
         step_coverage=cat["cov"], silhouettes=cat["sil"], final_views=cat["view"],
+        failures=merge(out["fail"]), perturbation=merge(out["pert"]),
         steps=steps if record_steps else None,
     )

@@ -13,7 +13,7 @@ call run the same phase timeline in ``mujoco.batch`` rollouts.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import mujoco
 import mujoco.batch
@@ -38,7 +38,6 @@ class ExecutorConfig:
         max_joint_speed: a motion takes longer than its nominal duration when its
             minimum-jerk peak would exceed this joint speed (rad/s; the UR5e's limit is pi).
         drop_tolerance: a piece further than this from where the cup holds it was dropped.
-        frames_per_placement: snapshots kept per placement for recordings (0: none).
     """
 
     clearance: float = 0.04
@@ -72,7 +71,6 @@ class ExecutionResult:
     missed: np.ndarray
     dropped: np.ndarray
     collision: np.ndarray
-    frames: list[np.ndarray] = field(default_factory=list)
 
 
 def _min_jerk(n: int) -> np.ndarray:
@@ -132,7 +130,10 @@ class Executor:
         kp = m.actuator_gainprm[robot.actuators, 0]
         self._lead = m.dof_damping[robot.dofadr] / kp
         self._spec = int(mujoco.mjtState.mjSTATE_CTRL)
-        self._ctrl_base = np.asarray(m.key("home").ctrl, dtype=np.float64)
+        #: Snapshots of the state per simulated second kept for recordings (0: none), and
+        #: the snapshots themselves: world -> list of qpos, emptied by :meth:`take_snapshots`.
+        self.capture_fps = 0.0
+        self.snapshots: dict[int, list[np.ndarray]] = {}
 
     # ------------------------------------------------------------- planning
     def _path(self, q0: np.ndarray, start: np.ndarray, end: np.ndarray, yaw0: np.ndarray, yaw1: np.ndarray,
@@ -172,10 +173,21 @@ class Executor:
         # velocity feed-forward does on the real controller, so the arm does not lag the plan.
         vel = np.diff(arm, axis=1, prepend=arm[:, :1]) / self.dt
         control[:, :, self.robot.actuators] = arm + vel * self._lead
+        record = ["sensordata", "qpos"] if self.capture_fps > 0 else ["sensordata"]
         out = self.batch.rollout(nstep=arm.shape[1], control=control, control_spec=self._spec,
-                                 record=["sensordata"], ids=rows)
+                                 record=record, ids=rows)
         self.ctrl[rows] = control[:, -1]
+        if self.capture_fps > 0:
+            k = max(1, math.ceil(arm.shape[1] * self.dt * self.capture_fps))
+            idx = np.linspace(0, arm.shape[1] - 1, k + 1)[1:].round().astype(int)
+            for i, r in enumerate(rows):
+                self.snapshots.setdefault(int(r), []).extend(out["qpos"][i, idx])
         return out["sensordata"]
+
+    def take_snapshots(self) -> dict[int, list[np.ndarray]]:
+        """The snapshots captured since the last call, by world."""
+        snaps, self.snapshots = self.snapshots, {}
+        return snaps
 
     # ------------------------------------------------------------- suction
     def _suction_on(self, rows: np.ndarray, piece: np.ndarray) -> None:
@@ -224,7 +236,6 @@ class Executor:
         at_src = np.c_[src[:, :2], top - cfg.press]
         above_dst = np.c_[pose[:, :2], z_travel]
         at_dst = np.c_[pose[:, :2], floor + cfg.release_gap + thick]
-        ready_tcp = self.robot.tcp_pose(self.ready)[:3, 3]
 
         # Plan everything first, so that an unreachable world keeps still throughout.
         approach, ok1 = self._path(q0, self._tcp(q0), above_src, src_yaw, src_yaw, cfg.approach)
@@ -239,7 +250,6 @@ class Executor:
         home = self._joint_path(up[:, -1], np.broadcast_to(self.ready, q0.shape), cfg.retract)
         reachable = ok1 & ok2 & ok3 & ok4 & ok5 & ok6
         still = ~reachable
-        del ready_tcp
 
         def plan(*parts: np.ndarray) -> np.ndarray:
             arm = np.concatenate(parts, 1)

@@ -246,6 +246,23 @@ class Worlds:
             penetration[ph] = self._penetration(rows[ph], piece[ph])
         return PlacementResult(physics=~free, penetration=penetration)
 
+    def push(self, rows: np.ndarray, piece: np.ndarray, displacement: np.ndarray, seconds: float = 0.6) -> None:
+        """Shove ``piece[i]`` of world ``rows[i]`` along ``displacement[i]`` (m, planar), as a flick would.
+
+        The piece is given the speed at which sliding friction on the table stops it after
+        that distance; physics then runs for ``seconds``, so it may hit and move others.
+        """
+        rows = np.asarray(rows, dtype=np.int64)
+        dist = np.linalg.norm(displacement, axis=1)
+        mu = self.model.geom_friction[self.model.geom("table").id, 0]
+        speed = np.sqrt(2 * mu * 9.81 * dist)
+        direction = displacement / np.maximum(dist, 1e-12)[:, None]
+        vcols = self._dadr[piece]
+        self.qvel[rows, vcols] = direction[:, 0] * speed
+        self.qvel[rows, vcols + 1] = direction[:, 1] * speed
+        self.batch.step(ids=rows, nstep=max(1, round(seconds / self.model.opt.timestep)))
+        self._refresh(rows)
+
     def _place_robot(self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, under: np.ndarray,
                      depth: np.ndarray) -> PlacementResult:
         """The robot places the pieces; the release height clears what lies under the target."""
