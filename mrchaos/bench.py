@@ -112,8 +112,14 @@ class Bench:
         families: families to run.
         random_objects: Random objects (seeded; the same set every run).
         seed: seed of the Random objects.
-        placement: "teleport" (the robot placement lands with the UR5e issue).
+        placement: "teleport" or "robot" (the UR5e picks and places every piece).
         num_worlds: worlds evaluated at once.
+        robot_model: UR5e MJCF for robot placement ("" for the package's own).
+        perturb_after: push the piece placed at this step away (the paper's Fig. 6C); None: no push.
+        perturb_distance: how far the push moves it (m).
+        scenes: with robot placement, how many episodes per policy and family are filmed
+            (rendered scene frames for the recording and the video).
+        scene_fps: film frames per simulated second.
     """
 
     def __init__(
@@ -124,13 +130,27 @@ class Bench:
         seed: int = 0,
         placement: str = "teleport",
         num_worlds: int = 64,
+        robot_model: str = "",
+        perturb_after: int | None = None,
+        perturb_distance: float = 0.05,
+        scenes: int = 0,
+        scene_fps: float = 4.0,
     ) -> None:
-        if placement != "teleport":
-            raise BenchError(f"placement {placement!r} is not available yet (only 'teleport'; 'robot' comes with the UR5e)")
+        if placement not in ("teleport", "robot"):
+            raise BenchError(f"placement must be 'teleport' or 'robot', got {placement!r}")
+        if scenes and placement != "robot":
+            raise BenchError("filming the scene (--video, scene frames in --record) needs --placement robot")
+        self.placement, self.robot_model = placement, robot_model
+        self.perturb_after, self.perturb_distance = perturb_after, perturb_distance
+        self.scenes, self.scene_fps = scenes, scene_fps
+        #: frames of the first filmed episode (first policy, first family), for a video.
+        self.video_frames: list[np.ndarray] = []
         self.families = families
         self.seed = seed
         self.num_worlds = num_worlds
         self.piece_set = get_piece_set("tangram7")
+        if perturb_after is not None and not 0 <= perturb_after < len(self.piece_set):
+            raise BenchError(f"--perturb must be a step in [0, {len(self.piece_set) - 1}], got {perturb_after}")
         rule = FamilyRule()
         self.targets: dict[str, tuple[np.ndarray, list[str]]] = {}
         self.skipped = [(fid, why) for fs in figure_sets for fid, why in fs.rejected]
@@ -154,7 +174,7 @@ class Bench:
                 self.targets[fam] = (np.stack([f.poses for f in chosen]), [f.id for f in chosen])
 
     def make_env(self, spec: PolicySpec) -> TangramEnv:
-        cfg = EnvConfig(num_worlds=self.num_worlds)
+        cfg = EnvConfig(num_worlds=self.num_worlds, placement=self.placement, robot_model=self.robot_model)
         if spec.state is not None:
             env_cfg = spec.state.get("config", {}).get("env", {})
             keep = {k: env_cfg[k] for k in ("view_extent", "view_size", "grid_nx", "grid_ny", "grid_ntheta",
@@ -191,16 +211,52 @@ class Bench:
             env = self.make_env(spec)
             act = self.actor(spec, env)
             per_fam = {}
+            renderer = None
+            if self.scenes:
+                from mrchaos.animation import SceneRenderer
+
+                renderer = SceneRenderer(env.worlds.model)
+                env.worlds.executor.capture_fps = self.scene_fps
             for fam, (poses, ids) in self.targets.items():
-                res = evaluate(env, poses, act, record_steps=record is not None)
+                film = self._filmer(env, renderer, spec.name, fam, ids, record) if renderer else None
+                res = evaluate(env, poses, act, record_steps=record is not None, perturb_after=self.perturb_after,
+                               perturb_distance=self.perturb_distance, on_step=film)
                 self.episodes[(spec.name, fam)] = res
                 per_fam[fam] = {m: summarise(getattr(res, m)) for m in METRICS}
+                if self.placement == "robot":
+                    # Failures per placement: each episode places every piece once.
+                    per_fam[fam]["robot_failures"] = {k: float(v.mean() / len(self.piece_set))
+                                                      for k, v in res.failures.items()}
+                if res.perturbation is not None:
+                    per_fam[fam]["perturbation"] = {k: summarise(v) for k, v in res.perturbation.items()}
                 results["counts"][fam] = len(ids)
                 if record is not None:
                     record.log_episodes(spec.name, fam, ids, res)
             results["policies"][spec.name] = {"label": spec.label, "families": per_fam}
+            if renderer is not None:
+                renderer.close()
             env.close()
+        results["placement"] = self.placement
+        if self.perturb_after is not None:
+            results["perturb"] = {"after_step": self.perturb_after, "distance_m": self.perturb_distance}
         return results
+
+    def _filmer(self, env: TangramEnv, renderer, policy: str, family: str, ids: list[str], record):
+        """An ``on_step`` hook that renders the robot's snapshots of the first ``scenes`` episodes."""
+        first_video = not self.video_frames
+
+        def on_step(start: int, t: int, nxt) -> None:
+            for w, states in sorted(env.worlds.executor.take_snapshots().items()):
+                ep = start + w
+                if ep >= min(self.scenes, len(ids)):
+                    continue
+                frames = [renderer.render(q) for q in states]
+                if record is not None:
+                    record.log_scene(policy, family, ids[ep], t, frames)
+                if first_video and ep == 0:
+                    self.video_frames.extend(frames)
+
+        return on_step
 
 
 def format_table(results: dict, families: list[str], markdown: bool = False) -> str:
@@ -228,6 +284,18 @@ def format_table(results: dict, families: list[str], markdown: bool = False) -> 
 
             lines = [title, fmt(head), "-" * (sum(widths) + 2 * len(widths))] + [fmt(r) for r in rows]
         blocks.append("\n".join(lines))
+    for name, pol in results["policies"].items():
+        for fam in fams:
+            s = pol["families"][fam]
+            if "robot_failures" in s:
+                rates = ", ".join(f"{k} {100 * v:.1f}" for k, v in s["robot_failures"].items())
+                blocks.append(f"robot failures per placement (%), {name} on {fam}: {rates}")
+            if "perturbation" in s:
+                pt = {k: 100 * v["mean"] for k, v in s["perturbation"].items()}
+                blocks.append(f"push after step {results['perturb']['after_step']}, {name} on {fam}: pushed piece's "
+                              f"coverage {pt['coverage_before']:.1f} -> {pt['coverage_after']:.1f} %, Final "
+                              f"{pt['final_before']:.1f} -> {pt['final_after']:.1f} % at the push, "
+                              f"{pt['final_end']:.1f} % at the end")
     return "\n\n".join(blocks)
 
 
@@ -239,6 +307,8 @@ def write_outputs(results: dict, families: list[str], out: Path) -> None:
     for name, pol in results["policies"].items():
         for fam, ms in pol["families"].items():
             for m, s in ms.items():
+                if m not in METRICS:
+                    continue
                 lines.append(f"{name},{fam},{m},{s['mean']:.6f},{s['se']:.6f},{s['ci95']:.6f},{s['n']}")
     write_atomic(out / "results.csv", "\n".join(lines) + "\n")
     md = ["# mrchaos-bench results", "", "Mean ± 95 % interval, in percent. Rela and Final are the paper's metrics; "

@@ -107,6 +107,7 @@ class EpisodeRecorder:
         self.piece_names = list(piece_names)
         self.grid_xy = grid_xy
         self.extent = extent
+        self._scene_frames: dict[str, int] = {}
 
     def log_episodes(self, policy: str, family: str, ids: Sequence[str], res) -> None:
         for rec in res.steps or []:
@@ -125,6 +126,18 @@ class EpisodeRecorder:
                 for i, name in enumerate(self.piece_names):
                     rr.log(f"{base}/coverage/{name}", rr.Scalars(float(rec["coverage"][k][i])), recording=self.stream)
                 rr.log(f"{base}/reward", rr.Scalars(float(rec["reward"][k])), recording=self.stream)
+
+    def log_scene(self, policy: str, family: str, episode_id: str, step: int, frames: Sequence[np.ndarray]) -> None:
+        """Rendered frames of the robot placing the piece of ``step`` (``<episode>/scene`` on the
+        ``step`` timeline, and on ``scene_frame``, which counts frames through the episode)."""
+        base = f"{policy}/{family}/{episode_id}/scene"
+        k0 = self._scene_frames.get(base, 0)
+        for k, frame in enumerate(frames):
+            rr.set_time("step", sequence=int(step), recording=self.stream)
+            rr.set_time("scene_frame", sequence=k0 + k, recording=self.stream)
+            rr.log(base, rr.Image(frame).compress(jpeg_quality=85), recording=self.stream)
+        self._scene_frames[base] = k0 + len(frames)
+        rr.reset_time(recording=self.stream)
 
     def close(self) -> None:
         """Flush and close the file."""

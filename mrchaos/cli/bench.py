@@ -19,7 +19,15 @@ def main(argv: list[str] | None = None) -> int:
                     "default: the built-in library)")
     ap.add_argument("--random-objects", type=int, default=200)
     ap.add_argument("--placement", default="teleport", choices=["teleport", "robot"])
+    ap.add_argument("--robot-model", default="", help="UR5e MJCF for --placement robot (default: the package's own; "
+                    "or MuJoCo Menagerie's universal_robots_ur5e/ur5e.xml)")
+    ap.add_argument("--perturb", type=int, metavar="STEP", help="push the piece placed at this step (0-based) "
+                    "away mid-episode, as in the paper's Fig. 6C, and report coverage before and after")
+    ap.add_argument("--perturb-distance", type=float, default=0.05, help="length of the push (m)")
     ap.add_argument("--record", type=Path, help="write a rerun recording of every episode")
+    ap.add_argument("--video", type=Path, help="with --placement robot: the first episode as a .gif or .mp4")
+    ap.add_argument("--scenes", type=int, default=1, help="with --placement robot and --record or --video: episodes "
+                    "per policy and family whose scene is rendered (a few frames per placement)")
     ap.add_argument("--out", type=Path, default=Path("runs/bench"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--worlds", type=int, default=64, help="worlds evaluated at once")
@@ -38,7 +46,14 @@ def main(argv: list[str] | None = None) -> int:
             sets = [load_figures(p) for p in args.figures]
         else:
             sets = [FigureSet("builtin", builtin_figures(), source="built-in library")]
-        bench = Bench(sets, families, args.random_objects, args.seed, args.placement, args.worlds)
+        if args.video and args.video.suffix.lower() not in (".gif", ".mp4"):
+            raise ValueError(f"{args.video}: --video must end in .gif or .mp4")
+        film = args.placement == "robot" and (args.record or args.video)
+        if args.video and args.placement != "robot":
+            raise ValueError("--video films the robot: it needs --placement robot")
+        bench = Bench(sets, families, args.random_objects, args.seed, args.placement, args.worlds,
+                      robot_model=args.robot_model, perturb_after=args.perturb,
+                      perturb_distance=args.perturb_distance, scenes=max(args.scenes, 1 if args.video else 0) if film else 0)
         for fid, why in bench.skipped:
             print(f"skipped {fid}: {why}", file=sys.stderr)
         recorder = None
@@ -57,6 +72,11 @@ def main(argv: list[str] | None = None) -> int:
         results["random_objects"] = args.random_objects
         write_outputs(results, families, args.out)
         _contact_sheet(bench, specs, args.out)
+        if args.video:
+            from mrchaos.animation import write_video
+
+            write_video(bench.video_frames, args.video, fps=bench.scene_fps * 2)
+            print(f"wrote {args.video} ({len(bench.video_frames)} frames, twice real time)")
         print(format_table(results, families))
         if bench.skipped:
             print(f"({len(bench.skipped)} figures skipped: see results.md)")
