@@ -134,6 +134,8 @@ class Executor:
         #: the snapshots themselves: world -> list of qpos, emptied by :meth:`take_snapshots`.
         self.capture_fps = 0.0
         self.snapshots: dict[int, list[np.ndarray]] = {}
+        #: simulated seconds summed over worlds (for throughput figures).
+        self.simulated_seconds = 0.0
 
     # ------------------------------------------------------------- planning
     def _path(self, q0: np.ndarray, start: np.ndarray, end: np.ndarray, yaw0: np.ndarray, yaw1: np.ndarray,
@@ -177,6 +179,7 @@ class Executor:
         out = self.batch.rollout(nstep=arm.shape[1], control=control, control_spec=self._spec,
                                  record=record, ids=rows)
         self.ctrl[rows] = control[:, -1]
+        self.simulated_seconds += arm.shape[1] * self.dt * len(rows)
         if self.capture_fps > 0:
             k = max(1, math.ceil(arm.shape[1] * self.dt * self.capture_fps))
             idx = np.linspace(0, arm.shape[1] - 1, k + 1)[1:].round().astype(int)

@@ -191,15 +191,20 @@ class Robot:
             err = np.abs(base @ f @ tool - s)[:, :3, :].max()
             if err < best[0]:
                 best = (err, base, tool)
-        if best[0] > 1e-6:  # refine the yaw found on the grid
-            lo = best
-            for yaw in np.linspace(-np.pi / 360, np.pi / 360, 101):
+        # Zoom in on the grid's best yaw until the base is exact or stops improving.
+        step = 2 * np.pi / 720
+        for _ in range(8):
+            if best[0] < 1e-11:
+                break
+            centre = best[1]
+            for yaw in np.linspace(-step, step, 101):
                 c, sn = math.cos(yaw), math.sin(yaw)
-                base = lo[1] @ np.array([[c, -sn, 0, 0], [sn, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+                base = centre @ np.array([[c, -sn, 0, 0], [sn, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
                 tool = np.linalg.inv(base @ f[0]) @ s[0]
                 err = np.abs(base @ f @ tool - s)[:, :3, :].max()
                 if err < best[0]:
                     best = (err, base, tool)
+            step /= 50
         err, self.base, self.tool = best
         if self.base is None or err > 0.01:
             raise ValueError(f"robot model {self.cfg.model_path()}: its kinematics are not a UR5e's "
@@ -240,6 +245,7 @@ class Robot:
             dr = 0.5 * np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
             if np.abs(dp).max() < 1e-6 and np.abs(dr).max() < 1e-5:
                 return q, True
+            mujoco.mj_comPos(m, d)  # the Jacobian needs the joint axes in the com frame
             mujoco.mj_jacSite(m, d, jacp, jacr, self.tcp_site)
             jac = np.r_[jacp[:, self.dofadr], jacr[:, self.dofadr]]
             err = np.r_[dp, dr]

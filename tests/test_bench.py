@@ -132,3 +132,39 @@ def test_mismatched_checkpoint_is_refused(tmp_path, capsys):
         assert bench_main(["--policy", str(path), "--random-objects", "2", "--families", "random"]) == 2
         err = capsys.readouterr().err
         assert msg in err and f"{key}.pt" in err
+
+
+def test_bench_robot_placement_films_and_perturbs(tmp_path, capsys):
+    import shutil
+    import subprocess
+
+    from PIL import Image
+
+    out, rec, video = tmp_path / "bench", tmp_path / "robot.rrd", tmp_path / "episode.gif"
+    args = ["--families", "random", "--policy", "oracle", "--random-objects", "2", "--worlds", "2",
+            "--placement", "robot", "--perturb", "3", "--out", str(out), "--record", str(rec), "--video", str(video)]
+    assert bench_main(args) == 0
+    text = capsys.readouterr().out
+    assert "robot failures per placement" in text and "push after step 3" in text
+    res = json.loads((out / "results.json").read_text())
+    assert res["placement"] == "robot"
+    fam = res["policies"]["oracle"]["families"]["Random"]
+    assert set(fam["robot_failures"]) == {"unreachable", "missed", "dropped", "collision"}
+    assert fam["robot_failures"]["missed"] == 0.0 and fam["robot_failures"]["unreachable"] == 0.0
+    # The oracle places by the solution; the push costs it a piece's worth at most.
+    assert fam["final"]["mean"] > 0.7
+    pt = fam["perturbation"]
+    assert pt["coverage_after"]["mean"] < pt["coverage_before"]["mean"]
+    with Image.open(video) as im:
+        assert im.n_frames > 7 * 5  # a few frames for every placement
+    rerun = shutil.which("rerun")
+    assert rerun, "the rerun CLI comes with rerun-sdk"
+    printed = subprocess.run([rerun, "rrd", "print", str(rec)], capture_output=True, text=True, timeout=120).stdout
+    assert "/oracle/Random/random-0/scene" in printed
+
+
+def test_bench_robot_options_need_robot_placement(capsys):
+    assert bench_main(["--policy", "oracle", "--random-objects", "2", "--video", "x.gif"]) == 2
+    assert "--placement robot" in capsys.readouterr().err
+    assert bench_main(["--policy", "oracle", "--random-objects", "2", "--perturb", "9"]) == 2
+    assert "--perturb must be a step in [0, 6]" in capsys.readouterr().err
