@@ -208,3 +208,21 @@ def test_perturbation_moves_the_piece_and_the_episode_goes_on() -> None:
     assert pushed.final.mean() < clean.final.mean() - 0.02
     assert pushed.final.mean() > pt["final_after"].mean()
     env.close()
+
+
+@pytest.mark.parametrize("suffix", [".gif", ".mp4"])
+def test_video_files_hold_the_frames(tmp_path, suffix) -> None:
+    import cv2
+
+    from mrchaos.animation import write_video
+
+    frames = [np.full((48, 64, 3), 40 * i, dtype=np.uint8) for i in range(5)]
+    path = write_video(frames, tmp_path / f"ep{suffix}", fps=5)
+    cap = cv2.VideoCapture(str(path))
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    assert n == 5
+    assert not list(tmp_path.glob("*.partial*"))
+    with pytest.raises(ValueError, match="must end in .gif or .mp4"):
+        write_video(frames, tmp_path / "ep.avi")
