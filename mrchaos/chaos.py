@@ -70,10 +70,10 @@ def _draw_angles(rng: np.random.Generator, shape: tuple[int, ...], step: float) 
 
 def scatter(piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosConfig = ChaosConfig()) -> np.ndarray:
     """(n, P, 3) poses: pieces at uniformly random poses, non-overlapping, inside the view."""
-    outlines = piece_set.padded_outlines()
+    parts = _piece_parts(piece_set)  # (P, K, V, 2)
     p = len(piece_set)
     poses = np.zeros((n, p, 3))
-    polys = np.zeros((n, p) + outlines.shape[1:])
+    polys = np.zeros((n,) + parts.shape)
     for k in range(p):
         todo = np.arange(n)
         for _ in range(cfg.max_tries):
@@ -81,11 +81,10 @@ def scatter(piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosCon
             cand = np.concatenate(
                 [rng.uniform(-cfg.workspace, cfg.workspace, (m, 2)), _draw_angles(rng, (m, 1), cfg.angle_step)], 1
             )
-            poly = rigid_transform(outlines[k], cand)  # (m, V, 2)
-            ok = np.abs(poly).max((1, 2)) <= cfg.view_half
+            poly = rigid_transform(parts[k], cand[:, None])  # (m, K, V, 2)
+            ok = np.abs(poly).max((1, 2, 3)) <= cfg.view_half
             if k > 0:
-                depth = convex_penetration(poly[:, None], polys[todo, :k])  # (m, k)
-                ok &= (depth <= 0).all(1)
+                ok &= _clear(poly, polys[todo, :k])
             poses[todo[ok], k] = cand[ok]
             polys[todo[ok], k] = poly[ok]
             todo = todo[~ok]
@@ -107,13 +106,13 @@ def attract(
     start: np.ndarray | None = None,
 ) -> np.ndarray:
     """(n, P, 3) poses: a scatter pulled together into a touching cluster, then centred."""
-    outlines = piece_set.padded_outlines()
+    parts = _piece_parts(piece_set)
     p = len(piece_set)
     poses = scatter(piece_set, n, rng, cfg) if start is None else np.array(start, dtype=np.float64)
     # The point of attraction: a random point near the centre, so clusters are not all alike.
     centre = rng.uniform(-0.02, 0.02, (n, 1, 2))
     step = np.full(n, 0.01)
-    polys = rigid_transform(outlines[None], poses)
+    polys = rigid_transform(parts[None], poses[:, :, None])  # (n, P, K, V, 2)
     active = np.ones(n, dtype=bool)
     while active.any():
         moved = np.zeros(n, dtype=bool)
@@ -129,9 +128,9 @@ def attract(
             # Straight toward the point, else slide along x, else along y.
             for direction in (unit, unit * [1.0, 0.0], unit * [0.0, 1.0]):
                 d = direction * s[:, None]
-                cand = polys[rows, k] + d[:, None, :]
+                cand = polys[rows, k] + d[:, None, None, :]
                 ok = ~done & (np.linalg.norm(d, axis=1) > 1e-9)
-                ok &= (convex_penetration(cand[:, None], others) <= 0).all(1)
+                ok &= _clear(cand, others)
                 r = rows[ok]
                 poses[r, k, :2] += d[ok]
                 polys[r, k] = cand[ok]
@@ -143,9 +142,21 @@ def attract(
         step[stuck] /= 2
         active &= step >= cfg.contact_gap
     # Centre each cluster on its bounding box.
-    lo, hi = polys.min((1, 2)), polys.max((1, 2))
+    lo, hi = polys.min((1, 2, 3)), polys.max((1, 2, 3))
     poses[..., :2] -= ((lo + hi) / 2)[:, None, :]
     return poses
+
+
+def _piece_parts(piece_set: PieceSet) -> np.ndarray:
+    """(P, K, V, 2) convex parts of every piece."""
+    parts = piece_set.padded_parts()
+    return parts.reshape(len(piece_set), piece_set.parts_per_piece, *parts.shape[1:])
+
+
+def _clear(poly: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """(m,) True where parts ``poly`` (m, K, V, 2) overlap none of ``others`` (m, j, K, V, 2)."""
+    depth = convex_penetration(poly[:, None, :, None], others[:, :, None])  # (m, j, K, K)
+    return (depth <= 0).all((1, 2, 3))
 
 
 def generate(

@@ -32,9 +32,9 @@ from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, Unbo
 from torchrl.envs import EnvBase
 
 from mrchaos.actions import ActionGrid
-from mrchaos.geometry import rigid_transform
 from mrchaos.metrics import (
     best_slot_coverage,
+    exclusive_slot_coverage,
     final_from_joint,
     gate_angle,
     gate_penetration,
@@ -77,6 +77,9 @@ class EnvConfig:
             [threshold, 1] is rescaled, for every piece larger than the smallest.
         penetration_gate, penetration_limit: pay 0 when the placed piece ends more than
             the limit (m) inside another.
+        twin_slots: "shared" (the paper's: a piece scores the best slot of its twin group,
+            even one a twin already fills) or "exclusive" (twins claim slots one each, in
+            placement order; for sets of many interchangeable pieces such as soda cans).
         angle_gate, angle_tolerance_deg: pay only when the commanded angle is within the
             tolerance of the covered slot's angle, modulo the piece's symmetry.
         action_noise_xy, action_noise_theta: std of Gaussian noise on the placement pose (m, rad).
@@ -101,6 +104,7 @@ class EnvConfig:
     release_gap: float = 0.002
     push_depth: float = 0.001
     nthread: int = 0
+    twin_slots: str = "shared"
     reward_shaping: bool = False
     shaping_threshold: float = 0.5
     penetration_gate: bool = False
@@ -115,6 +119,8 @@ class EnvConfig:
     def __post_init__(self) -> None:
         if self.camera not in ("raster", "mujoco"):
             raise ValueError(f"env.camera must be 'raster' or 'mujoco', got {self.camera!r}")
+        if self.twin_slots not in ("shared", "exclusive"):
+            raise ValueError(f"env.twin_slots must be 'shared' or 'exclusive', got {self.twin_slots!r}")
         if self.placement not in ("teleport", "robot"):
             raise ValueError(f"env.placement must be 'teleport' or 'robot', got {self.placement!r}")
         if self.num_worlds < 1:
@@ -145,7 +151,7 @@ class TangramEnv(EnvBase):
         )
         robot = RobotConfig(model=cfg.robot_model) if cfg.placement == "robot" else None
         self.worlds = Worlds(self.piece_set, cfg.num_worlds, physics, SceneConfig(), self.view, robot)
-        self.sampler = TaskSampler(self.piece_set, cfg.task, figures)
+        self.sampler = TaskSampler(self.piece_set, cfg.task, figures, cfg.view_extent)
         self._camera = None
         if cfg.camera == "mujoco":
             from mrchaos.camera import MujocoCamera
@@ -158,7 +164,6 @@ class TangramEnv(EnvBase):
         self._shaped = torch.as_tensor(areas > areas.min() + 1e-12)
         self._period = torch.as_tensor([pc.symmetry_period for pc in self.piece_set.pieces], dtype=torch.float32)
         self._twins = self.piece_set.twin_matrix()
-        self._outlines = self.piece_set.padded_outlines()
         # Per-world episode state.
         self.target = np.zeros((n, p, 3))
         self.target_ids = torch.full((n, cfg.view_size, cfg.view_size), -1, dtype=torch.int8)
@@ -240,8 +245,8 @@ class TangramEnv(EnvBase):
         self.target[rows] = tasks.poses
         self.task_source[rows] = tasks.source
         self.task_figure[rows] = tasks.figure
-        polys = rigid_transform(self._outlines[None], tasks.poses)
-        ids = rasterize(polys, self.view).ids
+        ps = self.piece_set
+        ids = rasterize(ps.footprints(tasks.poses), self.view, parts=ps.part_piece if ps.parts_per_piece > 1 else None).ids
         self.target_ids[rows] = ids
         self.silhouette[rows] = silhouette_image(ids)
         pre = [(np.flatnonzero(k > j), tasks.poses[k > j, j]) for j in range(self.num_pieces)]
@@ -337,16 +342,15 @@ class TangramEnv(EnvBase):
         if self._camera is not None:
             raster = self._camera.render(np.arange(n))
         else:
-            raster = rasterize(w.footprint, self.view, visible=w.placed, heights=w.top,
-                               need_height=self.obs_cfg.needs_height)
+            raster = w.raster(self.view, need_height=self.obs_cfg.needs_height)
         joint = joint_counts(raster.ids, self.target_ids, p)
         counts, area = joint[:, 1:, 1:], joint[:, :, 1:].sum(1)
-        coverage, slot = best_slot_coverage(counts, area, self._twins)  # (N, P) each
+        slots = exclusive_slot_coverage if self.cfg.twin_slots == "exclusive" else best_slot_coverage
+        coverage, slot = slots(counts, area, self._twins)  # (N, P) each
         view = raster
         if self.cfg.camera_jitter > 0 and self._camera is None:
             shift = torch.randn((n, 2), generator=self.rng, dtype=torch.float64).numpy() * self.cfg.camera_jitter
-            view = rasterize(w.footprint + shift[:, None, None, :], self.view, visible=w.placed, heights=w.top,
-                             need_height=self.obs_cfg.needs_height)
+            view = w.raster(self.view, shift=shift, need_height=self.obs_cfg.needs_height)
         self._view = view_image(view, self.obs_cfg)
 
         step_cov = torch.zeros(n, 1)

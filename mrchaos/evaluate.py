@@ -18,7 +18,6 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mrchaos.env import ROBOT_FAILURES, TangramEnv
 from mrchaos.metrics import strict_rela
-from mrchaos.raster import rasterize
 from mrchaos.task import TaskBatch
 
 __all__ = ["EpisodeResults", "evaluate", "FixedTargets"]
@@ -123,8 +122,7 @@ def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: b
             out["final"].append(nxt["info", "final"][:m, 0].numpy())
             out["iou"].append(nxt["info", "iou"][:m, 0].numpy())
             # Strict Rela from the final scene's piece-id image.
-            w = env.worlds
-            ids = rasterize(w.footprint, env.view, visible=w.placed, heights=w.top).ids
+            ids = env.worlds.raster(env.view).ids
             out["strict"].append(strict_rela(ids, env.target_ids, env.piece_set.twins, p)[:m].numpy())
             out["sil"].append(env.silhouette[:m].numpy().copy())
             out["view"].append(nxt["observation"][:m, 1].numpy().copy())

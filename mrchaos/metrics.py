@@ -105,6 +105,27 @@ def best_slot_coverage(
     return best.clamp(min=0).float(), slot
 
 
+def exclusive_slot_coverage(
+    counts: torch.Tensor, area: torch.Tensor, twins: np.ndarray | torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Like :func:`best_slot_coverage`, but a slot covered by one piece is closed to its twins:
+    pieces choose in id (placement) order, each the best slot still open. With many
+    interchangeable pieces (cans) this keeps several pieces from scoring on one slot."""
+    ratio = coverage_ratio(counts, area)  # (B, P, P)
+    allowed = torch.as_tensor(np.asarray(twins), dtype=torch.bool)
+    b, p = ratio.shape[:2]
+    taken = torch.zeros(b, p, dtype=torch.bool)
+    best = torch.zeros(b, p, dtype=torch.float64)
+    slot = torch.zeros(b, p, dtype=torch.long)
+    ar = torch.arange(b)
+    for i in range(p):
+        r = torch.where(allowed[i] & ~taken, ratio[:, i], torch.full((), -1.0, dtype=torch.float64))
+        bi, si = r.max(-1)
+        best[:, i], slot[:, i] = bi.clamp(min=0), si
+        taken[ar, si] |= bi > 0
+    return best.float(), slot
+
+
 def piece_coverage(counts: torch.Tensor, area: torch.Tensor, twins: np.ndarray | torch.Tensor) -> torch.Tensor:
     """(B, P) float coverage of each piece: best over the slots it may fill of |p_i ∩ p'_j| / |p'_j|.
 

@@ -2,11 +2,16 @@
 
 A piece set is an ordered tuple of pieces. A piece's identity everywhere in the
 package is its index in that order, which is also the placement order (largest
-first for the tangram). Outlines are convex polygons in metres, counter-clockwise,
-with their area centroid at the origin, so a pose (x, y, theta) places the
-centroid at (x, y) and rotates the outline by theta about it.
+first for the tangram). Outlines are polygons in metres, counter-clockwise, with
+their area centroid at the origin, so a pose (x, y, theta) places the centroid at
+(x, y) and rotates the outline by theta about it. A non-convex piece also carries
+a convex decomposition (``parts``) whose union is its outline exactly: collision
+meshes, overlap tests and the rasteriser work on the parts, so what is drawn and
+scored is the true outline.
 
-New part sets (cutlery, soda cans, ...) plug in through :func:`register_piece_set`.
+Sets defined here: ``tangram7``, ``cutlery`` (fork, knife, spoon) and ``soda3`` …
+``soda6`` (interchangeable 66 mm cans). New part sets plug in through
+:func:`register_piece_set`.
 """
 
 from __future__ import annotations
@@ -16,13 +21,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import shapely
 
-from mrchaos.geometry import polygon_area, polygon_centroid
+from mrchaos.geometry import polygon_area, polygon_centroid, rigid_transform
 
 __all__ = [
     "Piece",
     "PieceSet",
     "tangram7",
+    "cutlery",
+    "soda",
     "register_piece_set",
     "get_piece_set",
     "piece_set_names",
@@ -35,7 +43,8 @@ class Piece:
 
     Attributes:
         name: unique name within its set.
-        outline: (V, 2) convex polygon, metres, counter-clockwise, centroid at the origin.
+        outline: (V, 2) polygon, metres, counter-clockwise, centroid at the origin; convex
+            unless ``parts`` is given.
         thickness: extrusion height in metres.
         symmetry: order of rotational symmetry (1 = none, 2 = 180 deg, 4 = 90 deg,
             0 = continuous, e.g. a disc).
@@ -45,6 +54,9 @@ class Piece:
         action_origin: the point (centroid frame, m) that a placement action positions.
             The reference code positions each tangram piece by its mesh origin, not its
             centroid; keeping that point makes the action grid's rounding identical.
+        parts: convex polygons (same frame as ``outline`` before centring) whose union is
+            the outline; None for a convex piece (its outline is its one part). Use
+            :func:`piece_from_parts` to build a non-convex piece.
     """
 
     name: str
@@ -54,6 +66,7 @@ class Piece:
     chiral: bool = False
     mass: float | None = None
     action_origin: tuple[float, float] = (0.0, 0.0)
+    parts: tuple[np.ndarray, ...] | None = None
 
     def __post_init__(self) -> None:
         outline = np.asarray(self.outline, dtype=np.float64)
@@ -61,9 +74,20 @@ class Piece:
             raise ValueError(f"piece {self.name!r}: outline must be (V>=3, 2), got {outline.shape}")
         if polygon_area(outline) < 0:
             outline = outline[::-1].copy()
-        outline = outline - polygon_centroid(outline)
+        centre = polygon_centroid(outline)
+        raw_parts = [outline] if self.parts is None else [np.asarray(q, dtype=np.float64) for q in self.parts]
+        parts = []
+        for q in raw_parts:
+            q = q[::-1] if polygon_area(q) < 0 else q
+            if not shapely.Polygon(q).equals(shapely.Polygon(q).convex_hull):
+                raise ValueError(f"piece {self.name!r}: a part is not convex; give a convex decomposition")
+            q = q - centre
+            q.setflags(write=False)
+            parts.append(q)
+        outline = outline - centre
         outline.setflags(write=False)
         object.__setattr__(self, "outline", outline)
+        object.__setattr__(self, "parts", tuple(parts))
         if self.mass is None:
             object.__setattr__(self, "mass", 600.0 * self.area * self.thickness)
 
@@ -84,8 +108,24 @@ class Piece:
 
     def mirrored_outline(self) -> np.ndarray:
         """Outline reflected about the y axis, still counter-clockwise and centred."""
-        m = self.outline * np.array([-1.0, 1.0])
-        return m[::-1].copy()
+        return _mirror(self.outline)
+
+    def mirrored_parts(self) -> tuple[np.ndarray, ...]:
+        """Parts reflected about the y axis."""
+        return tuple(_mirror(q) for q in self.parts)
+
+
+def _mirror(poly: np.ndarray) -> np.ndarray:
+    return (poly * np.array([-1.0, 1.0]))[::-1].copy()
+
+
+def piece_from_parts(name: str, parts: list[np.ndarray], thickness: float, **kwargs) -> Piece:
+    """A (possibly non-convex) piece from convex parts that overlap or share edges; its
+    outline is their union."""
+    union = shapely.union_all([shapely.Polygon(q).buffer(0) for q in parts]).simplify(1e-7)
+    if union.geom_type != "Polygon" or len(union.interiors):
+        raise ValueError(f"piece {name!r}: its parts must join into one polygon without holes")
+    return Piece(name, np.asarray(union.exterior.coords)[:-1], thickness, parts=tuple(parts), **kwargs)
 
 
 @dataclass(frozen=True)
@@ -99,6 +139,9 @@ class PieceSet:
     name: str
     pieces: tuple[Piece, ...]
     twins: tuple[tuple[int, ...], ...] = field(default=())
+    #: Piece sets of one family share policies: a checkpoint trained on one member acts on
+    #: any other (e.g. soda3 … soda6, whose pieces are all the same can). Default: the name.
+    family: str = ""
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.pieces]
@@ -113,6 +156,9 @@ class PieceSet:
             shapes = {self.pieces[i].outline.tobytes() for i in group}
             if len(shapes) != 1:
                 raise ValueError(f"piece set {self.name!r}: twins {group} differ in shape")
+
+        if not self.family:
+            object.__setattr__(self, "family", self.name)
 
     def __len__(self) -> int:
         return len(self.pieces)
@@ -184,6 +230,37 @@ class PieceSet:
         return out
 
 
+    @property
+    def parts_per_piece(self) -> int:
+        """K: the most convex parts of any piece (1 for convex sets)."""
+        return max(len(p.parts) for p in self.pieces)
+
+    @property
+    def part_piece(self) -> np.ndarray:
+        """(P*K,) the piece of every padded part: parts are grouped by piece, in piece order."""
+        return np.repeat(np.arange(len(self.pieces)), self.parts_per_piece)
+
+    def padded_parts(self, mirrored: np.ndarray | None = None) -> np.ndarray:
+        """(P*K, Vmax, 2) convex parts, K per piece; a piece with fewer parts repeats its
+        last one, shorter polygons repeat their last vertex. For convex sets this is
+        :meth:`padded_outlines`."""
+        k = self.parts_per_piece
+        parts = [list(p.mirrored_parts() if (mirrored is not None and mirrored[i]) else p.parts)
+                 for i, p in enumerate(self.pieces)]
+        vmax = max(len(q) for ps in parts for q in ps)
+        out = np.zeros((len(self.pieces) * k, vmax, 2))
+        for i, ps in enumerate(parts):
+            ps = ps + [ps[-1]] * (k - len(ps))
+            for j, q in enumerate(ps):
+                out[i * k + j, : len(q)] = q
+                out[i * k + j, len(q) :] = q[-1]
+        return out
+
+    def footprints(self, poses: np.ndarray, mirrored: np.ndarray | None = None) -> np.ndarray:
+        """World polygons (..., P*K, Vmax, 2) of the parts of pieces at centroid poses (..., P, 3)."""
+        return rigid_transform(self.padded_parts(mirrored), np.repeat(np.asarray(poses), self.parts_per_piece, -2))
+
+
 def _tri(leg: float) -> np.ndarray:
     return np.array([[0.0, 0.0], [leg, 0.0], [0.0, leg]])
 
@@ -220,7 +297,60 @@ def tangram7() -> PieceSet:
     return PieceSet("tangram7", pieces, twins=((0, 1), (5, 6)))
 
 
-_REGISTRY: dict[str, Callable[[], PieceSet]] = {"tangram7": tangram7}
+def _ellipse(cx: float, a: float, b: float, n: int = 16) -> np.ndarray:
+    """An n-gon of the ellipse's area (semi-axes a along x, b along y) centred at (cx, 0)."""
+    t = np.arange(n) * 2 * math.pi / n
+    k = math.sqrt(2 * math.pi / (n * math.sin(2 * math.pi / n)))  # polygon area = ellipse area
+    return np.c_[cx + k * a * np.cos(t), k * b * np.sin(t)]
+
+
+def cutlery() -> PieceSet:
+    """A knife, a spoon and a fork (210, 177 and 195 mm long, 4 mm thick), lying along +x.
+
+    The fork and the spoon are mirror-symmetric; the knife's edge curves up to the tip on
+    one side only, so its mirror image is another knife (chiral). None has a rotational
+    symmetry. Outlines are the unions of the convex parts listed here.
+    """
+    t = 0.004
+    knife = piece_from_parts("knife", [
+        np.array([[0.0, -0.0085], [0.094, -0.0075], [0.094, 0.0075], [0.0, 0.0085]]),  # handle
+        np.array([[0.094, -0.010], [0.165, -0.010], [0.192, -0.005], [0.208, 0.004], [0.21, 0.010],
+                  [0.094, 0.010]]),  # blade
+    ], t, chiral=True)
+    spoon = piece_from_parts("spoon", [
+        np.array([[0.0, -0.007], [0.115, -0.003], [0.115, 0.003], [0.0, 0.007]]),  # handle
+        _ellipse(0.145, 0.032, 0.021),  # bowl
+    ], t)
+    tines = [np.array([[0.1495, y], [0.195, y], [0.195, y + 0.004], [0.1495, y + 0.004]])
+             for y in (-0.011, -0.005, 0.001, 0.007)]
+    fork = piece_from_parts("fork", [
+        np.array([[0.0, -0.009], [0.105, -0.005], [0.105, 0.005], [0.0, 0.009]]),  # handle
+        np.array([[0.105, -0.005], [0.135, -0.011], [0.135, 0.011], [0.105, 0.005]]),  # neck
+        np.array([[0.135, -0.011], [0.150, -0.011], [0.150, 0.011], [0.135, 0.011]]),  # head
+        *tines,
+    ], t)
+    return PieceSet("cutlery", (knife, spoon, fork))
+
+
+#: Diameter and height of a 330 ml soda can (m).
+CAN_DIAMETER, CAN_HEIGHT = 0.066, 0.122
+
+
+def soda(n: int = 6) -> PieceSet:
+    """``n`` standing soda cans: discs 66 mm across (16-gons of the disc's area), 122 mm
+    tall, continuously symmetric and all interchangeable (one twin group)."""
+    if not 1 <= n <= 16:
+        raise ValueError(f"soda: 1 to 16 cans, got {n}")
+    disc = _ellipse(0.0, CAN_DIAMETER / 2, CAN_DIAMETER / 2)
+    cans = tuple(Piece(f"can_{i + 1}", disc, CAN_HEIGHT, symmetry=0) for i in range(n))
+    return PieceSet(f"soda{n}", cans, twins=(tuple(range(n)),), family="soda")
+
+
+_REGISTRY: dict[str, Callable[[], PieceSet]] = {
+    "tangram7": tangram7,
+    "cutlery": cutlery,
+    **{f"soda{n}": (lambda n=n: soda(n)) for n in range(3, 7)},
+}
 _CACHE: dict[str, PieceSet] = {}
 
 

@@ -73,6 +73,7 @@ def rasterize(
     visible: np.ndarray | torch.Tensor | None = None,
     heights: np.ndarray | torch.Tensor | None = None,
     need_height: bool = False,
+    parts: np.ndarray | None = None,
 ) -> Raster:
     """Rasterise convex polygons into piece-id and height images.
 
@@ -85,7 +86,19 @@ def rasterize(
             the image the higher one is seen; ties go to the larger piece id (placed
             later). Default: all equal.
         need_height: also return the visible height image (costs one more gather).
+        parts: (P',) the piece of every polygon when pieces are unions of convex parts
+            (:meth:`mrchaos.pieces.PieceSet.padded_parts`); ``visible`` and ``heights``
+            are then per piece, and ``ids`` hold piece ids.
     """
+    if parts is not None:
+        idx = torch.as_tensor(np.asarray(parts), dtype=torch.long)
+        if visible is not None:
+            visible = torch.as_tensor(visible, dtype=torch.bool)[:, idx]
+        if heights is not None:
+            heights = torch.as_tensor(heights, dtype=torch.float32)[:, idx]
+        out = rasterize(polygons, view, visible, heights, need_height)
+        lut = torch.cat([idx, torch.full((1,), -1)]).to(torch.int8)
+        return Raster(lut[out.ids.long()], out.height)
     poly = torch.as_tensor(polygons, dtype=torch.float32)
     b, p, v, _ = poly.shape
     h = w = view.size

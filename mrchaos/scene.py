@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from mrchaos.geometry import polygon_area
 from mrchaos.pieces import PieceSet
 from mrchaos.raster import View
 from mrchaos.robot import Robot, RobotConfig, attach_robot
@@ -52,14 +53,21 @@ class SceneConfig:
     sleep_tolerance: float = 1e-4
 
 
-def staging_poses(piece_set: PieceSet, cfg: SceneConfig = SceneConfig()) -> np.ndarray:
-    """(P, 3) planar poses of the staging slots: pieces in two columns beside the table, unseen."""
+def staging_poses(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view: View | None = None) -> np.ndarray:
+    """(P, 3) planar poses of the staging slots: pieces in two columns beside the table, outside
+    the camera ``view``."""
     p = len(piece_set)
     rows = math.ceil(p / 2)
+    # Slots grow with the pieces (lying at angle 0) when the configured pitch is too tight.
+    lo = np.min([pc.outline.min(0) for pc in piece_set.pieces], 0)
+    hi = np.max([pc.outline.max(0) for pc in piece_set.pieces], 0)
+    pitch_x = max(cfg.staging_pitch, hi[0] - lo[0] + 0.01)
+    pitch_y = max(cfg.staging_pitch, hi[1] - lo[1] + 0.01)
+    x0 = max(cfg.staging_x, view.extent / 2 - lo[0] + 0.02) if view is not None else cfg.staging_x
     out = np.zeros((p, 3))
     for i in range(p):
         col, row = divmod(i, rows)
-        out[i] = [cfg.staging_x + col * cfg.staging_pitch, (row - (rows - 1) / 2) * cfg.staging_pitch, 0.0]
+        out[i] = [x0 + col * pitch_x, (row - (rows - 1) / 2) * pitch_y, 0.0]
     return out
 
 
@@ -82,18 +90,27 @@ def build_scene_xml(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view:
     colours = ["0.89 0.10 0.11", "0.22 0.49 0.72", "0.30 0.69 0.29", "0.60 0.31 0.64",
                "1.00 0.50 0.00", "0.65 0.34 0.16", "0.97 0.51 0.75", "0.6 0.6 0.6"]
     meshes, bodies = [], []
-    stage = staging_poses(piece_set, cfg)
+    stage = staging_poses(piece_set, cfg, view)
     home_qpos = []
     for i, p in enumerate(piece_set.pieces):
-        meshes.append(f'    <mesh name="{p.name}" vertex="{_fmt(_prism_vertices(p.outline, p.thickness))}"/>')
         rgba = colours[i % len(colours)] + " 1"
         x, y, th = stage[i]
         z = p.thickness / 2
+        # One convex mesh per part (MuJoCo collides convex hulls); a convex piece has one,
+        # named after the piece. Mass is shared by area.
+        areas = np.array([polygon_area(q) for q in p.parts])
+        geoms = []
+        for j, (part, a) in enumerate(zip(p.parts, areas)):
+            name = p.name if j == 0 else f"{p.name}_part{j}"
+            meshes.append(f'    <mesh name="{name}" vertex="{_fmt(_prism_vertices(part, p.thickness))}"/>')
+            geoms.append(f'      <geom name="{name}" class="collision" type="mesh" mesh="{name}" '
+                         f'mass="{p.mass * a / areas.sum():.6g}"/>')
+            geoms.append(f'      <geom name="{name}_visual" class="visual" type="mesh" mesh="{name}" rgba="{rgba}"/>')
+        body_geoms = "\n".join(geoms)
         bodies.append(
             f'''    <body name="{p.name}" pos="{x:.6g} {y:.6g} {z:.6g}">
       <freejoint name="{p.name}"/>
-      <geom name="{p.name}" class="collision" type="mesh" mesh="{p.name}" mass="{p.mass:.6g}"/>
-      <geom name="{p.name}_visual" class="visual" type="mesh" mesh="{p.name}" rgba="{rgba}"/>
+{body_geoms}
       <site name="{p.name}_top" pos="0 0 {p.thickness / 2:.6g}" size="0.002"/>
     </body>'''
         )

@@ -36,6 +36,8 @@ class TaskConfig:
         chaos_mode: "scatter", "attract" or "mix" (fresh objects and a built cache).
         attract_fraction: share of attract objects under "mix".
         angle_step: rotation grid of chaos objects (rad); 0 for continuous.
+        workspace: chaos objects' piece centroids are drawn in [-workspace, workspace]^2 (m)
+            before the attraction; the camera view (``env.view_extent``) bounds the rest.
         cache_path: an ``.npz`` cache to load; built and saved there if missing.
         cache_size: objects to generate when the cache has to be built.
         cache_seed: seed of a built cache.
@@ -48,13 +50,17 @@ class TaskConfig:
     chaos_mode: str = "mix"
     attract_fraction: float = 0.5
     angle_step: float = 0.7853981633974483
+    workspace: float = 0.10
     cache_path: str | None = None
     cache_size: int = 2048
     cache_seed: int = 12345
     figure_sets: list[str] = field(default_factory=lambda: ["builtin"])
 
-    def chaos_config(self) -> ChaosConfig:
-        return ChaosConfig(mode=self.chaos_mode, attract_fraction=self.attract_fraction, angle_step=self.angle_step)
+    def chaos_config(self, view_extent: float = 0.26) -> ChaosConfig:
+        """The chaos generator's settings for a camera view ``view_extent`` metres wide: every
+        object lies inside the view, 5 mm from its edges."""
+        return ChaosConfig(mode=self.chaos_mode, attract_fraction=self.attract_fraction, angle_step=self.angle_step,
+                           workspace=self.workspace, view_half=view_extent / 2 - 0.005)
 
 
 @dataclass
@@ -73,11 +79,14 @@ class TaskSampler:
         piece_set: the pieces.
         cfg: the mix and its sources.
         figures: figures to use instead of loading ``cfg.figure_sets`` (optional).
+        view_extent: width of the camera view (m); chaos objects lie inside it.
     """
 
-    def __init__(self, piece_set: PieceSet, cfg: TaskConfig = TaskConfig(), figures: list[Figure] | None = None):
+    def __init__(self, piece_set: PieceSet, cfg: TaskConfig = TaskConfig(), figures: list[Figure] | None = None,
+                 view_extent: float = 0.26):
         self.piece_set = piece_set
         self.cfg = cfg
+        self.view_extent = view_extent
         w = np.array([cfg.chaos, cfg.cache, cfg.figures], dtype=np.float64)
         if (w < 0).any() or w.sum() <= 0:
             raise ValueError(f"task mix weights must be >= 0 with a positive sum, got chaos/cache/figures = {w}")
@@ -98,7 +107,7 @@ class TaskSampler:
         if path and Path(path).exists():
             return ChaosCache.load(path, self.piece_set)
         log.info("building a chaos cache of %d objects", self.cfg.cache_size)
-        cache = ChaosCache.build(self.piece_set, self.cfg.cache_size, self.cfg.cache_seed, self.cfg.chaos_config())
+        cache = ChaosCache.build(self.piece_set, self.cfg.cache_size, self.cfg.cache_seed, self.cfg.chaos_config(self.view_extent))
         if path:
             cache.save(path)
         return cache
@@ -125,7 +134,7 @@ class TaskSampler:
         figure = np.full(n, -1, dtype=np.int64)
         idx = np.flatnonzero(source == 0)
         if len(idx):
-            poses[idx] = generate(self.piece_set, len(idx), rng, self.cfg.chaos_config())[0]
+            poses[idx] = generate(self.piece_set, len(idx), rng, self.cfg.chaos_config(self.view_extent))[0]
         idx = np.flatnonzero(source == 1)
         if len(idx):
             poses[idx] = self.cache.sample(len(idx), rng)

@@ -66,7 +66,7 @@ def evaluate_random(policy, cfg: TrainConfig, n: int = 200, seed: int = 2024) ->
     env_cfg = dataclasses.replace(cfg.env_config(), task=task, num_worlds=min(n, 100), action_noise_xy=0.0,
                                   action_noise_theta=0.0, camera_jitter=0.0)
     env = TangramEnv(env_cfg, seed=seed)
-    targets = generate(env.piece_set, n, np.random.default_rng(seed), cfg.task.chaos_config())[0]
+    targets = generate(env.piece_set, n, np.random.default_rng(seed), cfg.task.chaos_config(env_cfg.view_extent))[0]
     res = evaluate(env, targets, policy_actor(policy))
     return {"n": n, "rela": float(res.rela.mean()), "final": float(res.final.mean()),
             "iou": float(res.iou.mean()), "strict_rela": float(res.strict_rela.mean())}

@@ -23,7 +23,7 @@ import shapely
 
 from mrchaos.geometry import convex_penetration, rigid_transform
 from mrchaos.pieces import PieceSet
-from mrchaos.raster import View
+from mrchaos.raster import Raster, View, rasterize
 from mrchaos.executor import ExecutionResult, Executor, ExecutorConfig
 from mrchaos.robot import Robot, RobotConfig
 from mrchaos.scene import SceneConfig, build_model, staging_poses
@@ -123,16 +123,20 @@ class Worlds:
         bodies = np.array([self.model.body(name).id for name in piece_set.names])
         self._qadr = self.model.jnt_qposadr[self.model.body_jntadr[bodies]]
         self._dadr = self.model.jnt_dofadr[self.model.body_jntadr[bodies]]
-        self._outlines = piece_set.padded_outlines()  # (P, V, 2)
-        self._v = self._outlines.shape[1]
+        # Geometry works on convex parts, K per piece (K = 1 for convex sets): (P*K, V, 2).
+        self._parts = piece_set.padded_parts()
+        self._k = piece_set.parts_per_piece
+        self._part_piece = piece_set.part_piece
+        self._v = self._parts.shape[1]
         self._thick = np.array([pc.thickness for pc in piece_set.pieces])
-        # Prism vertices in body frames, padded like the outlines: (P, 2V, 3).
-        lo = np.concatenate([self._outlines, -self._thick[:, None, None] / 2 * np.ones((p, self._v, 1))], -1)
-        hi = np.concatenate([self._outlines, self._thick[:, None, None] / 2 * np.ones((p, self._v, 1))], -1)
-        self._prism = np.concatenate([lo, hi], 1)
-        self._staging = staging_poses(piece_set, scene)
+        # Prism vertices of the parts in body frames, padded like the outlines: (P*K, 2V, 3).
+        half_t = (self._thick[self._part_piece] / 2)[:, None, None] * np.ones((len(self._parts), self._v, 1))
+        self._prism = np.concatenate([np.concatenate([self._parts, -half_t], -1),
+                                      np.concatenate([self._parts, half_t], -1)], 1)
+        self._staging = staging_poses(piece_set, scene, view)
         self.placed = np.zeros((n, p), dtype=bool)
-        self.footprint = np.zeros((n, p, 2 * self._v, 2))
+        #: (n, P*K, 2V, 2) footprints of the pieces' convex parts (see :meth:`raster`).
+        self.footprint = np.zeros((n, p * self._k, 2 * self._v, 2))
         self.top = np.zeros((n, p))
         self.count_fast = 0
         self.count_physics = 0
@@ -156,13 +160,13 @@ class Worlds:
 
     def _refresh(self, rows: np.ndarray) -> None:
         """Recompute footprints and top heights of the given worlds from qpos."""
-        q = self.qpos[rows][:, self._qadr[:, None] + np.arange(7)]
-        rot = _quat_to_mat(q[..., 3:])  # (R, P, 3, 3)
-        verts = np.einsum("rpij,pvj->rpvi", rot, self._prism) + q[..., None, :3]  # (R, P, 2V, 3)
-        self.top[rows] = verts[..., 2].max(-1)
+        q = self.qpos[rows][:, self._qadr[:, None] + np.arange(7)][:, self._part_piece]  # (R, Q, 7)
+        rot = _quat_to_mat(q[..., 3:])  # (R, Q, 3, 3)
+        verts = np.einsum("rpij,pvj->rpvi", rot, self._prism) + q[..., None, :3]  # (R, Q, 2V, 3)
+        self.top[rows] = verts[..., 2].max(-1).reshape(len(rows), -1, self._k).max(-1)
         tilted = rot[..., 2, 2] < math.cos(self.cfg.flat_tilt)
         yaw = np.arctan2(rot[..., 1, 0], rot[..., 0, 0])
-        flat = rigid_transform(self._outlines[None], np.stack([q[..., 0], q[..., 1], yaw], -1))  # (R, P, V, 2)
+        flat = rigid_transform(self._parts[None], np.stack([q[..., 0], q[..., 1], yaw], -1))  # (R, Q, V, 2)
         fp = np.concatenate([flat, np.repeat(flat[..., -1:, :], self._v, axis=2)], 2)
         for r, i in zip(*np.nonzero(tilted)):
             hull = shapely.MultiPoint(verts[r, i, :, :2]).convex_hull
@@ -200,11 +204,11 @@ class Worlds:
         rows = np.asarray(rows, dtype=np.int64)
         piece = np.asarray(piece, dtype=np.int64)
         m = len(rows)
-        outline = self._outlines[piece]  # (m, V, 2)
-        foot = rigid_transform(outline, pose)
+        cols = piece[:, None] * self._k + np.arange(self._k)  # (m, K) the piece's parts
+        foot = rigid_transform(self._parts[cols], pose[:, None])  # (m, K, V, 2)
         others = self.placed[rows].copy()
         others[np.arange(m), piece] = False
-        depth = convex_penetration(foot[:, None], self.footprint[rows])  # (m, P)
+        depth = self._piece_depth(foot, rows)  # (m, P)
         under = others & (depth > self.cfg.free_tolerance)
         if self.executor is not None:
             return self._place_robot(rows, piece, pose, under, depth)
@@ -233,9 +237,9 @@ class Worlds:
         self.placed[rows, piece] = True
         # A fast-path world changed by one flat piece; physics worlds may have moved anything.
         if len(fr):
-            r, k = rows[fr], piece[fr]
-            self.footprint[r, k, : self._v] = foot[fr]
-            self.footprint[r, k, self._v :] = foot[fr, -1:]
+            r, k, c = rows[fr], piece[fr], cols[fr]
+            self.footprint[r[:, None], c, : self._v] = foot[fr]
+            self.footprint[r[:, None], c, self._v :] = foot[fr][:, :, -1:]
             self.top[r, k] = self._thick[k]
         if len(ph):
             self._refresh(rows[ph])
@@ -283,8 +287,8 @@ class Worlds:
         if m == 0:
             return np.zeros(0)
         ar = np.arange(m)
-        foot = self.footprint[rows, piece]  # (m, 2V, 2)
-        depth2d = convex_penetration(foot[:, None], self.footprint[rows])  # (m, P)
+        foot = self.footprint[rows[:, None], piece[:, None] * self._k + np.arange(self._k)]  # (m, K, 2V, 2)
+        depth2d = self._piece_depth(foot, rows)  # (m, P)
         top = self.top[rows]
         bottom = top - self._thick[None, :]
         zover = np.minimum(top, top[ar, piece][:, None]) - np.maximum(bottom, bottom[ar, piece][:, None])
@@ -292,6 +296,24 @@ class Worlds:
         others = self.placed[rows].copy()
         others[ar, piece] = False
         return np.where(others, pen, 0.0).max(1).clip(min=0.0)
+
+    def _piece_depth(self, foot: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """(m, P) penetration of parts ``foot`` (m, K, V', 2) into every piece of worlds ``rows``
+        (the deepest over all pairs of parts)."""
+        depth = convex_penetration(foot[:, :, None], self.footprint[rows][:, None])  # (m, K, Q)
+        return depth.max(1).reshape(len(rows), -1, self._k).max(-1)
+
+    def raster(self, view: View, rows: np.ndarray | None = None, shift: np.ndarray | None = None,
+               need_height: bool = False) -> Raster:
+        """Top-down piece-id (and height) images of the placed pieces of worlds ``rows`` (default all),
+        optionally shifted by (R, 2) metres (camera jitter)."""
+        sel = slice(None) if rows is None else rows
+        fp = self.footprint[sel]
+        if shift is not None:
+            fp = fp + shift[:, None, None, :]
+        parts = self._part_piece if self._k > 1 else None
+        return rasterize(fp, view, visible=self.placed[sel], heights=self.top[sel], need_height=need_height,
+                         parts=parts)
 
     @property
     def physics_share(self) -> float:
