@@ -174,6 +174,8 @@ class TangramEnv(EnvBase):
         self.task_figure = np.full(n, -1, dtype=np.int64)
         self._view = torch.zeros((n, cfg.view_size, cfg.view_size), dtype=torch.uint8)
         self._done = torch.zeros((n, 1), dtype=torch.bool)
+        # Summed slot coverage of the placed pieces at the last observation (exclusive slots).
+        self._held = torch.zeros(n)
         self._make_specs()
         self._set_seed(seed)
 
@@ -347,6 +349,7 @@ class TangramEnv(EnvBase):
         counts, area = joint[:, 1:, 1:], joint[:, :, 1:].sum(1)
         slots = exclusive_slot_coverage if self.cfg.twin_slots == "exclusive" else best_slot_coverage
         coverage, slot = slots(counts, area, self._twins)  # (N, P) each
+        held = (coverage * torch.as_tensor(w.placed)).sum(1)
         view = raster
         if self.cfg.camera_jitter > 0 and self._camera is None:
             shift = torch.randn((n, 2), generator=self.rng, dtype=torch.float64).numpy() * self.cfg.camera_jitter
@@ -359,6 +362,10 @@ class TangramEnv(EnvBase):
             t = torch.as_tensor(piece)
             ar = torch.arange(n)
             raw = coverage[ar, t]
+            if self.cfg.twin_slots == "exclusive":
+                # What the placement added to the assembly: a can stacked on another hides
+                # it and takes its slot, which adds nothing.
+                raw = (held - self._held).clamp(min=0.0)
             r = raw.clone()
             if self.cfg.reward_shaping:
                 r = shape_reward(r, self._shaped[t], self.cfg.shaping_threshold)
@@ -390,6 +397,7 @@ class TangramEnv(EnvBase):
             batch_size=self.batch_size,
         )
         done = self._done.clone()
+        self._held = held
         out = TensorDict(
             observation=obs,
             info=info,
