@@ -19,19 +19,23 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mrchaos.chaos import ChaosConfig, generate
+from mrchaos.chaos import generate
 from mrchaos.checkpoint import CheckpointError, check_compatible, load_checkpoint
 from mrchaos.env import EnvConfig, TangramEnv
-from mrchaos.evaluate import EpisodeResults, evaluate, policy_actor
+from mrchaos.evaluate import EpisodeResults, concat_results, evaluate, policy_actor
 from mrchaos.families import FamilyRule, family_of
 from mrchaos.figure import FAMILIES, Figure
 from mrchaos.figure_io import FigureSet, write_atomic
 from mrchaos.oracle import oracle_actions
-from mrchaos.pieces import get_piece_set
+from mrchaos.goals import TASKS
+from mrchaos.pieces import get_piece_set, piece_set_names
+from mrchaos.task import TaskConfig
 
 __all__ = ["BenchError", "PolicySpec", "resolve_policy", "FAMILY_NAMES", "parse_families", "Bench", "SHIPPED"]
 
 FAMILY_NAMES = {f.lower(): f for f in FAMILIES}
+#: Families of the extension tasks: our authored goals, and seeded chaos objects.
+TASK_FAMILIES = ("Authored", "Random")
 METRICS = ("rela", "final", "iou", "strict_rela")
 #: Learnt policies shipped with the package: name -> (file, label).
 SHIPPED = {
@@ -40,6 +44,8 @@ SHIPPED = {
     "mrchaos-wo-local": ("mrchaos-wo-local.pt", "MRChaos w/o local"),
     "mrchaos-wo-global": ("mrchaos-wo-global.pt", "MRChaos w/o global"),
     "bc": ("bc.pt", "BC (trained on the built-in library)"),
+    "mrchaos-cutlery": ("mrchaos-cutlery.pt", "MRChaos on cutlery (conf/cutlery.yaml)"),
+    "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),
 }
 
 
@@ -83,16 +89,18 @@ def resolve_policy(spec: str) -> PolicySpec:
     return PolicySpec(Path(spec).name, f"{Path(spec).name} ({p})", "checkpoint", str(p), load_checkpoint(p))
 
 
-def parse_families(text: str) -> list[str]:
-    """'all' or a comma-separated list of random, h-normal, h-hard, h-fiendish."""
+def parse_families(text: str, task: str = "tangram") -> list[str]:
+    """'all' or a comma-separated list: random, h-normal, h-hard, h-fiendish for the tangram,
+    authored and random for the extension tasks."""
+    known = FAMILY_NAMES if task == "tangram" else {f.lower(): f for f in TASK_FAMILIES}
     if text.strip().lower() == "all":
-        return list(FAMILIES)
+        return list(known.values())
     out = []
     for part in text.split(","):
         key = part.strip().lower()
-        if key not in FAMILY_NAMES:
-            raise BenchError(f"unknown family {part.strip()!r}; use 'all' or some of {sorted(FAMILY_NAMES)}")
-        out.append(FAMILY_NAMES[key])
+        if key not in known:
+            raise BenchError(f"unknown family {part.strip()!r}; use 'all' or some of {sorted(known)}")
+        out.append(known[key])
     return out
 
 
@@ -120,6 +128,8 @@ class Bench:
         scenes: with robot placement, how many episodes per policy and family are filmed
             (rendered scene frames for the recording and the video).
         scene_fps: film frames per simulated second.
+        task: "tangram" (families Random, H-Normal, H-Hard, H-Fiendish) or an extension task
+            of :data:`mrchaos.goals.TASKS` (families Authored and Random).
     """
 
     def __init__(
@@ -135,6 +145,7 @@ class Bench:
         perturb_distance: float = 0.05,
         scenes: int = 0,
         scene_fps: float = 4.0,
+        task: str = "tangram",
     ) -> None:
         if placement not in ("teleport", "robot"):
             raise BenchError(f"placement must be 'teleport' or 'robot', got {placement!r}")
@@ -148,39 +159,65 @@ class Bench:
         self.families = families
         self.seed = seed
         self.num_worlds = num_worlds
-        self.piece_set = get_piece_set("tangram7")
+        if task != "tangram" and task not in TASKS:
+            raise BenchError(f"unknown task {task!r}; use tangram or one of {sorted(TASKS)}")
+        self.task = task
+        self.preset = TASKS.get(task)
+        self.piece_set = get_piece_set(self.preset.piece_set if self.preset else "tangram7")
         if perturb_after is not None and not 0 <= perturb_after < len(self.piece_set):
             raise BenchError(f"--perturb must be a step in [0, {len(self.piece_set) - 1}], got {perturb_after}")
+        view_extent = self.preset.view_extent if self.preset else EnvConfig().view_extent
+        chaos = TaskConfig(workspace=self.preset.workspace if self.preset else TaskConfig().workspace).chaos_config(
+            view_extent)
+        family_set = {fs.family for fs in map(get_piece_set, self.preset.random_sets)} if self.preset else {"tangram7"}
         rule = FamilyRule()
-        self.targets: dict[str, tuple[np.ndarray, list[str]]] = {}
+        #: family -> groups of (piece set name, target poses, episode ids); a family may mix
+        #: piece sets of one family (soda goals of 3 to 6 cans).
+        self.targets: dict[str, list[tuple[str, np.ndarray, list[str]]]] = {}
         self.skipped = [(fid, why) for fs in figure_sets for fid, why in fs.rejected]
         figs: list[Figure] = []
         for fs in figure_sets:
             for f in fs.figures:
-                if f.piece_set.name != self.piece_set.name:
-                    self.skipped.append((f.id, f"{f.where}: piece set {f.piece_set.name} is not {self.piece_set.name}"))
+                if f.piece_set.family not in family_set:
+                    self.skipped.append((f.id, f"{f.where}: piece set {f.piece_set.name} is not one of this task's"))
                 elif f.has_mirrored:
-                    self.skipped.append((f.id, f"{f.where}: needs a flipped parallelogram (a suction robot cannot flip it)"))
+                    self.skipped.append((f.id, f"{f.where}: needs a mirrored chiral piece (a suction robot cannot flip it)"))
                 else:
                     figs.append(f)
+        rng = np.random.default_rng(seed)
         for fam in families:
             if fam == "Random":
-                if random_objects > 0:
-                    poses = generate(self.piece_set, random_objects, np.random.default_rng(seed), ChaosConfig())[0]
-                    self.targets[fam] = (poses, [f"random-{i}" for i in range(random_objects)])
+                sets = self.preset.random_sets if self.preset else ("tangram7",)
+                counts = [random_objects // len(sets) + (i < random_objects % len(sets)) for i in range(len(sets))]
+                groups = []
+                for name, k in zip(sets, counts):
+                    if k > 0:
+                        poses = generate(get_piece_set(name), k, rng, chaos)[0]
+                        groups.append((name, poses, [f"random-{i}" if len(sets) == 1 else f"random-{name}-{i}"
+                                                     for i in range(k)]))
+                if groups:
+                    self.targets[fam] = groups
                 continue
-            chosen = [f for f in figs if family_of(f, rule) == fam]
-            if chosen:
-                self.targets[fam] = (np.stack([f.poses for f in chosen]), [f.id for f in chosen])
+            chosen = [f for f in figs if (fam == "Authored" if self.preset else family_of(f, rule) == fam)]
+            groups = []
+            for name in dict.fromkeys(f.piece_set.name for f in chosen):
+                sub = [f for f in chosen if f.piece_set.name == name]
+                groups.append((name, np.stack([f.poses for f in sub]), [f.id for f in sub]))
+            if groups:
+                self.targets[fam] = groups
 
-    def make_env(self, spec: PolicySpec) -> TangramEnv:
-        cfg = EnvConfig(num_worlds=self.num_worlds, placement=self.placement, robot_model=self.robot_model)
+    def make_env(self, spec: PolicySpec, piece_set: str | None = None) -> TangramEnv:
+        """The env a policy is evaluated in: the task's settings, then the checkpoint's view and grid."""
+        cfg = EnvConfig(num_worlds=self.num_worlds, placement=self.placement, robot_model=self.robot_model,
+                        **(self.preset.env_overrides() if self.preset else {}))
         if spec.state is not None:
             env_cfg = spec.state.get("config", {}).get("env", {})
             keep = {k: env_cfg[k] for k in ("view_extent", "view_size", "grid_nx", "grid_ny", "grid_ntheta",
-                                             "grid_half_range", "view_mode", "height_levels") if k in env_cfg}
+                                             "grid_half_range", "view_mode", "height_levels", "twin_slots")
+                    if k in env_cfg}
             cfg = dataclasses.replace(cfg, **keep)
-        cfg = dataclasses.replace(cfg, task=dataclasses.replace(cfg.task, cache=0.0, chaos=1.0))
+        cfg = dataclasses.replace(cfg, piece_set=piece_set or self.piece_set.name,
+                                  task=dataclasses.replace(cfg.task, cache=0.0, chaos=1.0))
         return TangramEnv(cfg, seed=self.seed)
 
     def actor(self, spec: PolicySpec, env: TangramEnv):
@@ -193,7 +230,12 @@ class Bench:
         from mrchaos.policy import PolicyConfig, build_actor_critic
 
         st = spec.state
-        check_compatible(st, spec.path, env.piece_set.name, [2, env.view.size, env.view.size], env.grid.nvec)
+        # A policy acts on any piece set of the family it was trained on (e.g. any can count).
+        trained = st.get("piece_set")
+        if trained in piece_set_names() and get_piece_set(trained).family == env.piece_set.family:
+            trained = env.piece_set.name
+        check_compatible({**st, "piece_set": trained}, spec.path, env.piece_set.name,
+                         [2, env.view.size, env.view.size], env.grid.nvec)
         try:
             pcfg = PolicyConfig(**st["policy"])
             ac = build_actor_critic(pcfg, env.grid, env.view, env.action_spec)
@@ -208,19 +250,28 @@ class Bench:
         results: dict = {"policies": {}, "counts": {}, "skipped": self.skipped, "seed": self.seed}
         self.episodes: dict[tuple[str, str], EpisodeResults] = {}
         for spec in specs:
-            env = self.make_env(spec)
-            act = self.actor(spec, env)
             per_fam = {}
-            renderer = None
-            if self.scenes:
-                from mrchaos.animation import SceneRenderer
+            envs: dict[str, tuple] = {}
+            for fam, groups in self.targets.items():
+                parts = []
+                for set_name, poses, ids in groups:
+                    if set_name not in envs:
+                        env = self.make_env(spec, set_name)
+                        renderer = None
+                        if self.scenes:
+                            from mrchaos.animation import SceneRenderer
 
-                renderer = SceneRenderer(env.worlds.model)
-                env.worlds.executor.capture_fps = self.scene_fps
-            for fam, (poses, ids) in self.targets.items():
-                film = self._filmer(env, renderer, spec.name, fam, ids, record) if renderer else None
-                res = evaluate(env, poses, act, record_steps=record is not None, perturb_after=self.perturb_after,
-                               perturb_distance=self.perturb_distance, on_step=film)
+                            renderer = SceneRenderer(env.worlds.model)
+                            env.worlds.executor.capture_fps = self.scene_fps
+                        envs[set_name] = (env, self.actor(spec, env), renderer)
+                    env, act, renderer = envs[set_name]
+                    film = self._filmer(env, renderer, spec.name, fam, ids, record) if renderer else None
+                    res = evaluate(env, poses, act, record_steps=record is not None, perturb_after=self.perturb_after,
+                                   perturb_distance=self.perturb_distance, on_step=film)
+                    if record is not None:
+                        record.log_episodes(spec.name, fam, ids, res)
+                    parts.append(res)
+                res = concat_results(parts)
                 self.episodes[(spec.name, fam)] = res
                 per_fam[fam] = {m: summarise(getattr(res, m)) for m in METRICS}
                 if self.placement == "robot":
@@ -229,13 +280,13 @@ class Bench:
                                                       for k, v in res.failures.items()}
                 if res.perturbation is not None:
                     per_fam[fam]["perturbation"] = {k: summarise(v) for k, v in res.perturbation.items()}
-                results["counts"][fam] = len(ids)
-                if record is not None:
-                    record.log_episodes(spec.name, fam, ids, res)
+                results["counts"][fam] = len(res.rela)
             results["policies"][spec.name] = {"label": spec.label, "families": per_fam}
-            if renderer is not None:
-                renderer.close()
-            env.close()
+            for env, _, renderer in envs.values():
+                if renderer is not None:
+                    renderer.close()
+                env.close()
+        results["task"] = self.task
         results["placement"] = self.placement
         if self.perturb_after is not None:
             results["perturb"] = {"after_step": self.perturb_after, "distance_m": self.perturb_distance}

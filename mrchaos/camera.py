@@ -2,7 +2,7 @@
 
 It renders each world's segmentation and depth through the scene's orthographic
 ``overhead_ortho`` camera (or the reference's perspective ``overhead`` camera,
-whose 4:3 image is cropped to its centre square) and turns them into the
+whose 4:3 image is cropped to its centre) and turns them into the
 rasteriser's output, so the environment can use either. It costs milliseconds per
 world (OSMesa here: ``MUJOCO_GL=osmesa``), against microseconds for the rasteriser,
 so it serves to check the rasteriser and for users who want rendered images.

@@ -20,7 +20,7 @@ from mrchaos.env import ROBOT_FAILURES, TangramEnv
 from mrchaos.metrics import strict_rela
 from mrchaos.task import TaskBatch
 
-__all__ = ["EpisodeResults", "evaluate", "FixedTargets"]
+__all__ = ["EpisodeResults", "evaluate", "concat_results", "FixedTargets"]
 
 
 class FixedTargets:
@@ -134,12 +134,32 @@ def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: b
         env.sampler = saved
     cat = {k: np.concatenate(v) for k, v in out.items() if k not in ("fail", "pert")}
 
-    def merge(dicts: list[dict]) -> dict[str, np.ndarray] | None:
-        return {k: np.concatenate([d[k] for d in dicts]) for k in dicts[0]} if dicts else None
-
     return EpisodeResults(
         rela=cat["rela"], final=cat["final"], iou=cat["iou"], strict_rela=cat["strict"],
         step_coverage=cat["cov"], silhouettes=cat["sil"], final_views=cat["view"],
-        failures=merge(out["fail"]), perturbation=merge(out["pert"]),
+        failures=_merge(out["fail"]), perturbation=_merge(out["pert"]),
         steps=steps if record_steps else None,
     )
+
+
+def _merge(dicts: list[dict[str, np.ndarray] | None]) -> dict[str, np.ndarray] | None:
+    """Per-key concatenation; None when there is nothing, or a part has none."""
+    if not dicts or any(d is None for d in dicts):
+        return None
+    return {k: np.concatenate([d[k] for d in dicts]) for k in dicts[0]}
+
+
+def concat_results(parts: list[EpisodeResults]) -> EpisodeResults:
+    """Episodes of several evaluations (e.g. piece sets of one family) as one; per-step
+    records are dropped (their episode indices are per part)."""
+    if len(parts) == 1:
+        return parts[0]
+
+    # Episodes of different piece counts have coverage rows of different lengths.
+    width = max(r.step_coverage.shape[1] for r in parts)
+    cov = [np.pad(r.step_coverage, ((0, 0), (0, width - r.step_coverage.shape[1])), constant_values=np.nan)
+           for r in parts]
+    arrays = {k: np.concatenate([getattr(r, k) for r in parts])
+              for k in ("rela", "final", "iou", "strict_rela", "silhouettes", "final_views")}
+    return EpisodeResults(step_coverage=np.concatenate(cov), failures=_merge([r.failures for r in parts]),
+                          perturbation=_merge([r.perturbation for r in parts]), **arrays)

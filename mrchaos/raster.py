@@ -22,7 +22,7 @@ __all__ = ["View", "Raster", "rasterize"]
 
 @dataclass(frozen=True)
 class View:
-    """The camera's footprint: a square of ``extent`` metres imaged at ``size`` x ``size`` pixels.
+    """The camera's footprint: ``extent`` x ``extent`` metres imaged at ``size`` x ``size`` pixels.
 
     The default spans 0.26 m, which matches the reference perspective camera
     (0.25 m above the table, 55.37 deg vertical field of view, centre 120x120 crop)

@@ -116,7 +116,7 @@ def build_scene_xml(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view:
         )
         home_qpos.append(_fmt(np.r_[x, y, z, _quat_z(th)]))
     half = view.extent / 2
-    # Perspective camera of the reference: a 4:3 image whose centre square is the observation.
+    # Perspective camera of the reference: a 4:3 image whose centre crop is the observation.
     return f'''<mujoco model="mrchaos_{piece_set.name}">
   <compiler angle="radian" autolimits="true"/>
   <option timestep="{cfg.timestep}" integrator="implicitfast" cone="elliptic" impratio="10" sleep_tolerance="{cfg.sleep_tolerance}">

@@ -40,7 +40,7 @@ def draw_polygons(
     background: tuple[int, int, int] = (255, 255, 255),
     outline: tuple[int, int, int] | None = (40, 40, 40),
 ) -> Image.Image:
-    """Draw world-frame polygons (metres) into a square tile covering the camera view."""
+    """Draw world-frame polygons (metres) into a tile covering the camera view."""
     img = Image.new("RGB", (tile, tile), background)
     d = ImageDraw.Draw(img)
     scale = tile / view.extent

@@ -47,7 +47,7 @@ def test_bench_metrics_match_an_independent_computation(policy):
     bench = Bench([], ["Random"], random_objects=12, seed=3, num_worlds=12)
     spec = resolve_policy(policy)
     env = bench.make_env(spec)
-    targets = bench.targets["Random"][0]
+    targets = bench.targets["Random"][0][1]
     res, rela, final = _independent_metrics(env, targets, bench.actor(spec, env))
     # Pixel counts (2.17 mm pixels) against exact areas: agree to a few percent per episode.
     assert np.abs(res.rela - rela).max() < 0.05

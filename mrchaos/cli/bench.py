@@ -12,11 +12,14 @@ import numpy as np
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrchaos-bench", description=__doc__)
-    ap.add_argument("--families", default="all", help="'all' or comma-separated: random,h-normal,h-hard,h-fiendish")
+    ap.add_argument("--task", default="tangram", help="tangram (default), cutlery or soda")
+    ap.add_argument("--families", default="all", help="'all' or comma-separated: random,h-normal,h-hard,h-fiendish "
+                    "(tangram) or authored,random (cutlery, soda)")
     ap.add_argument("--policy", action="append", help="random, oracle, mrchaos, mrchaos-wo-local, mrchaos-wo-global, "
-                    "bc, or a checkpoint / run folder (repeatable; default: mrchaos)")
+                    "bc, mrchaos-cutlery, mrchaos-soda, or a checkpoint / run folder (repeatable; default: mrchaos, "
+                    "or mrchaos-<task>)")
     ap.add_argument("--figures", action="append", help="interchange JSON or folder of KILOGRAM SVGs (repeatable; "
-                    "default: the built-in library)")
+                    "default: the built-in library, or the task's authored goals)")
     ap.add_argument("--random-objects", type=int, default=200)
     ap.add_argument("--placement", default="teleport", choices=["teleport", "robot"])
     ap.add_argument("--robot-model", default="", help="UR5e MJCF for --placement robot (default: the package's own; "
@@ -40,12 +43,17 @@ def main(argv: list[str] | None = None) -> int:
         from mrchaos.figure_io import FigureSet, load_figures
         from mrchaos.library import builtin_figures
 
-        families = parse_families(args.families)
-        specs = [resolve_policy(p) for p in (args.policy or ["mrchaos"])]
+        families = parse_families(args.families, args.task)
+        default = "mrchaos" if args.task == "tangram" else f"mrchaos-{args.task}"
+        specs = [resolve_policy(p) for p in (args.policy or [default])]
         if args.figures:
             sets = [load_figures(p) for p in args.figures]
-        else:
+        elif args.task == "tangram":
             sets = [FigureSet("builtin", builtin_figures(), source="built-in library")]
+        else:
+            from mrchaos.goals import task_goals
+
+            sets = [FigureSet(args.task, task_goals(args.task), source=f"mrchaos.goals ({args.task})")]
         if args.video and args.video.suffix.lower() not in (".gif", ".mp4"):
             raise ValueError(f"{args.video}: --video must end in .gif or .mp4")
         film = args.placement == "robot" and (args.record or args.video)
@@ -53,18 +61,17 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("--video films the robot: it needs --placement robot")
         bench = Bench(sets, families, args.random_objects, args.seed, args.placement, args.worlds,
                       robot_model=args.robot_model, perturb_after=args.perturb,
-                      perturb_distance=args.perturb_distance, scenes=max(args.scenes, 1 if args.video else 0) if film else 0)
+                      perturb_distance=args.perturb_distance, scenes=max(args.scenes, 1 if args.video else 0) if film else 0,
+                      task=args.task)
         for fid, why in bench.skipped:
             print(f"skipped {fid}: {why}", file=sys.stderr)
         recorder = None
         if args.record:
-            from mrchaos.actions import ActionGrid
-            from mrchaos.pieces import get_piece_set
-            from mrchaos.raster import View
             from mrchaos.rerun_logger import EpisodeRecorder
 
-            g = ActionGrid()
-            recorder = EpisodeRecorder(args.record, get_piece_set("tangram7").names, (g.xs, g.ys), View().extent)
+            env = bench.make_env(specs[0])
+            recorder = EpisodeRecorder(args.record, bench.piece_set.names, (env.grid.xs, env.grid.ys), env.view.extent)
+            env.close()
         results = bench.run(specs, recorder)
         if recorder is not None:
             recorder.close()
@@ -95,7 +102,8 @@ def _contact_sheet(bench, specs, out: Path, per_family: int = 6) -> None:
     from mrchaos.sheet import pair_sheet, save_png
 
     pairs = []
-    for fam, (_, ids) in bench.targets.items():
+    for fam, groups in bench.targets.items():
+        ids = [i for _, _, group_ids in groups for i in group_ids]
         res = bench.episodes.get((specs[0].name, fam))
         if res is None:
             continue
