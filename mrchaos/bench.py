@@ -89,9 +89,16 @@ def resolve_policy(spec: str) -> PolicySpec:
     return PolicySpec(Path(spec).name, f"{Path(spec).name} ({p})", "checkpoint", str(p), load_checkpoint(p))
 
 
+def check_task(task: str) -> None:
+    """Raise :class:`BenchError` unless ``task`` is tangram or one of :data:`mrchaos.goals.TASKS`."""
+    if task != "tangram" and task not in TASKS:
+        raise BenchError(f"unknown task {task!r}; use tangram or one of {sorted(TASKS)}")
+
+
 def parse_families(text: str, task: str = "tangram") -> list[str]:
     """'all' or a comma-separated list: random, h-normal, h-hard, h-fiendish for the tangram,
     authored and random for the extension tasks."""
+    check_task(task)
     known = FAMILY_NAMES if task == "tangram" else {f.lower(): f for f in TASK_FAMILIES}
     if text.strip().lower() == "all":
         return list(known.values())
@@ -159,8 +166,7 @@ class Bench:
         self.families = families
         self.seed = seed
         self.num_worlds = num_worlds
-        if task != "tangram" and task not in TASKS:
-            raise BenchError(f"unknown task {task!r}; use tangram or one of {sorted(TASKS)}")
+        check_task(task)
         self.task = task
         self.preset = TASKS.get(task)
         self.piece_set = get_piece_set(self.preset.piece_set if self.preset else "tangram7")

@@ -88,12 +88,25 @@ def convex_penetration(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     lead = np.broadcast_shapes(a.shape[:-2], b.shape[:-2])
     a = np.broadcast_to(a, lead + a.shape[-2:])
     b = np.broadcast_to(b, lead + b.shape[-2:])
+    # Bounding boxes first: most pairs of parts are far apart, and the x and y axes are
+    # separating axes too, so a negative box overlap is a valid (<= 0) answer for them.
+    box = np.minimum(a.max(-2), b.max(-2)) - np.maximum(a.min(-2), b.min(-2))
+    out = box.min(-1)
+    near = out > 0
+    if near.any():
+        out[near] = _sat_overlap(a[near], b[near])
+    return out
+
+
+def _sat_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(m,) smallest projection overlap of polygon pairs a (m, Va, 2), b (m, Vb, 2) over their edge normals."""
     na, va = _edge_normals(a)
     nb, vb = _edge_normals(b)
-    axes = np.concatenate([na, nb], axis=-2)  # (..., A, 2)
+    axes = np.concatenate([na, nb], axis=-2)[:, :, None, :]  # (m, A, 1, 2)
     valid = np.concatenate([va, vb], axis=-1)
-    pa = np.einsum("...vk,...ak->...av", a, axes)
-    pb = np.einsum("...vk,...ak->...av", b, axes)
+    # Elementwise products beat einsum/matmul on these tiny batched shapes.
+    pa = (a[:, None, :, 0] * axes[..., 0] + a[:, None, :, 1] * axes[..., 1])  # (m, A, Va)
+    pb = (b[:, None, :, 0] * axes[..., 0] + b[:, None, :, 1] * axes[..., 1])
     overlap = np.minimum(pa.max(-1), pb.max(-1)) - np.maximum(pa.min(-1), pb.min(-1))
     overlap = np.where(valid, overlap, np.inf)
     return overlap.min(-1)

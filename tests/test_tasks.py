@@ -26,7 +26,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "mrchaos"
 
 
 def _env(task: str, piece_set: str | None = None, n: int = 10) -> TangramEnv:
-    cfg = EnvConfig(num_worlds=n, **{**TASKS[task].env_overrides(), **({"piece_set": piece_set} if piece_set else {})})
+    # Fresh chaos objects, not a cache: the tests set their own targets, and building a cache is slow.
+    over = {**TASKS[task].env_overrides(), **({"piece_set": piece_set} if piece_set else {})}
+    cfg = EnvConfig(num_worlds=n, task=TaskConfig(chaos=1.0, cache=0.0), **over)
     return TangramEnv(cfg, seed=0)
 
 
