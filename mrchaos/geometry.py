@@ -85,9 +85,11 @@ def convex_penetration(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     it equals the distance one polygon must move to clear the other. Repeated
     vertices (padding) are ignored.
     """
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
     lead = np.broadcast_shapes(a.shape[:-2], b.shape[:-2])
-    a = np.broadcast_to(a, lead + a.shape[-2:])
-    b = np.broadcast_to(b, lead + b.shape[-2:])
+    # Flatten the lead dims so a single pair (lead == ()) takes the same masked path.
+    a = np.broadcast_to(a, lead + a.shape[-2:]).reshape(-1, *a.shape[-2:])
+    b = np.broadcast_to(b, lead + b.shape[-2:]).reshape(-1, *b.shape[-2:])
     # Bounding boxes first: most pairs of parts are far apart, and the x and y axes are
     # separating axes too, so a negative box overlap is a valid (<= 0) answer for them.
     box = np.minimum(a.max(-2), b.max(-2)) - np.maximum(a.min(-2), b.min(-2))
@@ -95,7 +97,7 @@ def convex_penetration(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     near = out > 0
     if near.any():
         out[near] = _sat_overlap(a[near], b[near])
-    return out
+    return out.reshape(lead)
 
 
 def _sat_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
