@@ -152,3 +152,26 @@ def test_bench_runs_a_task(tmp_path, capsys) -> None:
     assert "Authored Rela" in capsys.readouterr().out
     assert bench_main(["--task", "forks", "--policy", "oracle"]) == 2
     assert bench_main(["--task", "soda", "--families", "h-hard", "--policy", "oracle"]) == 2
+
+
+@pytest.mark.parametrize("task", sorted(TASKS))
+def test_shipped_task_policy_beats_random_on_every_piece_set(task: str, tmp_path) -> None:
+    # The default policy of --task is the shipped mrchaos-<task>; soda's Random family draws
+    # soda3 ... soda6, so the soda6-trained policy must act on every can count.
+    from mrchaos.cli.bench import main as bench_main
+
+    out = tmp_path / task
+    assert bench_main(["--task", task, "--random-objects", "8", "--worlds", "8", "--out", str(out)]) == 0
+    assert bench_main(["--task", task, "--policy", "random", "--random-objects", "8", "--worlds", "8",
+                       "--out", str(tmp_path / "random")]) == 0
+    trained = json.loads((out / "results.json").read_text())
+    rand = json.loads((tmp_path / "random" / "results.json").read_text())["policies"]["random"]["families"]
+    assert list(trained["policies"]) == [f"mrchaos-{task}"]
+    fam = trained["policies"][f"mrchaos-{task}"]["families"]
+    for name in ("Authored", "Random"):
+        assert fam[name]["final"]["mean"] > rand[name]["final"]["mean"] + 0.1, (name, fam[name], rand[name])
+    if task == "soda":
+        from mrchaos.bench import Bench
+
+        bench = Bench([], ["Random"], 8, 0, "teleport", 8, task="soda")  # the same seeded Random family
+        assert [group[0] for group in bench.targets["Random"]] == ["soda3", "soda4", "soda5", "soda6"]
