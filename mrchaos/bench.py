@@ -275,7 +275,7 @@ class Bench:
                     res = evaluate(env, poses, act, record_steps=record is not None, perturb_after=self.perturb_after,
                                    perturb_distance=self.perturb_distance, on_step=film)
                     if record is not None:
-                        record.log_episodes(spec.name, fam, ids, res)
+                        record.log_episodes(spec.name, fam, ids, res, env.piece_set.names)
                     parts.append(res)
                 res = concat_results(parts)
                 self.episodes[(spec.name, fam)] = res

@@ -144,7 +144,10 @@ def test_bench_runs_a_task(tmp_path, capsys) -> None:
     from mrchaos.cli.bench import main as bench_main
 
     out = tmp_path / "soda"
-    assert bench_main(["--task", "soda", "--policy", "oracle", "--random-objects", "8", "--out", str(out)]) == 0
+    rrd = tmp_path / "soda.rrd"  # the Random family mixes 3 to 6 cans in one recording
+    assert bench_main(["--task", "soda", "--policy", "oracle", "--random-objects", "8", "--out", str(out),
+                       "--record", str(rrd)]) == 0
+    assert rrd.stat().st_size > 10_000
     res = json.loads((out / "results.json").read_text())
     assert res["task"] == "soda" and res["counts"] == {"Authored": 10, "Random": 8}
     fam = res["policies"]["oracle"]["families"]
