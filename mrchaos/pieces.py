@@ -9,7 +9,7 @@ a convex decomposition (``parts``) whose union is its outline exactly: collision
 meshes, overlap tests and the rasteriser work on the parts, so what is drawn and
 scored is the true outline.
 
-Sets defined here: ``tangram7``, ``cutlery`` (fork, knife, spoon) and ``soda3`` …
+Sets defined here: ``tangram7``, ``cutlery`` (knife, spoon, fork) and ``soda3`` …
 ``soda6`` (interchangeable 66 mm cans). New part sets plug in through
 :func:`register_piece_set`.
 """
