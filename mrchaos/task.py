@@ -105,7 +105,14 @@ class TaskSampler:
     def _load_or_build_cache(self) -> ChaosCache:
         path = self.cfg.cache_path
         if path and Path(path).exists():
-            return ChaosCache.load(path, self.piece_set)
+            cache = ChaosCache.load(path, self.piece_set)
+            # A cache built for a wider view would hand the policy pieces it cannot see.
+            reach = np.abs(self.piece_set.footprints(cache.poses)).max()
+            half = self.view_extent / 2
+            if reach > half:
+                raise ValueError(f"{path}: chaos cache objects reach {reach:.3f} m from the centre, outside this "
+                                 f"view's ±{half:.3f} m; delete it or set task.cache_path to rebuild")
+            return cache
         log.info("building a chaos cache of %d objects", self.cfg.cache_size)
         cache = ChaosCache.build(self.piece_set, self.cfg.cache_size, self.cfg.cache_seed, self.cfg.chaos_config(self.view_extent))
         if path:

@@ -73,3 +73,14 @@ def test_cache_round_trip_and_errors(tmp_path):
         ChaosCache.load(path)
     with pytest.raises(ValueError, match="no such chaos cache"):
         ChaosCache.load(tmp_path / "none.npz")
+
+
+def test_a_cache_built_for_a_wider_view_is_refused(tmp_path):
+    from mrchaos.task import TaskConfig, TaskSampler
+
+    path = tmp_path / "wide.npz"
+    ChaosCache.build(PS, 16, seed=2, cfg=TaskConfig().chaos_config(0.26)).save(path)
+    cfg = TaskConfig(chaos=0.0, cache=1.0, cache_path=str(path))
+    assert len(TaskSampler(PS, cfg, view_extent=0.26).cache) == 16
+    with pytest.raises(ValueError, match="wide.npz: chaos cache objects reach"):
+        TaskSampler(PS, cfg, view_extent=0.16)
