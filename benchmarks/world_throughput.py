@@ -49,7 +49,7 @@ def main() -> None:
     preset = TASKS.get(args.task)
     ps = get_piece_set(preset.piece_set if preset else "tangram7")
     view = View(preset.view_extent) if preset else View()
-    chaos = TaskConfig(workspace=preset.workspace if preset else TaskConfig.workspace).chaos_config(view.extent)
+    chaos = preset.chaos_config() if preset else TaskConfig().chaos_config(view.extent)
     p = len(ps)
     rng = np.random.default_rng(0)
     b = args.batch

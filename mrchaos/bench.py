@@ -172,9 +172,7 @@ class Bench:
         self.piece_set = get_piece_set(self.preset.piece_set if self.preset else "tangram7")
         if perturb_after is not None and not 0 <= perturb_after < len(self.piece_set):
             raise BenchError(f"--perturb must be a step in [0, {len(self.piece_set) - 1}], got {perturb_after}")
-        view_extent = self.preset.view_extent if self.preset else EnvConfig().view_extent
-        chaos = TaskConfig(workspace=self.preset.workspace if self.preset else TaskConfig().workspace).chaos_config(
-            view_extent)
+        chaos = self.preset.chaos_config() if self.preset else TaskConfig().chaos_config(EnvConfig().view_extent)
         family_set = {fs.family for fs in map(get_piece_set, self.preset.random_sets)} if self.preset else {"tangram7"}
         rule = FamilyRule()
         #: family -> groups of (piece set name, target poses, episode ids); a family may mix

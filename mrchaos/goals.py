@@ -18,9 +18,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mrchaos.chaos import ChaosConfig
 from mrchaos.figure import Figure, FigureError
 from mrchaos.pieces import get_piece_set
 from mrchaos.raster import View
+from mrchaos.task import TaskConfig
 
 __all__ = ["TaskPreset", "TASKS", "cutlery_goals", "soda_goals", "task_goals"]
 
@@ -106,6 +108,10 @@ class TaskPreset:
     workspace: float
     goals: Callable[[], list[Figure]]
     random_sets: tuple[str, ...]
+
+    def chaos_config(self) -> ChaosConfig:
+        """The chaos generator's settings of the task: its workspace, inside its view."""
+        return TaskConfig(workspace=self.workspace).chaos_config(self.view_extent)
 
     def env_overrides(self) -> dict:
         """EnvConfig fields of the task."""

@@ -99,7 +99,7 @@ def test_chaos_generators_make_separate_pieces_inside_the_view(set_name: str) ->
     task = "cutlery" if set_name == "cutlery" else "soda"
     preset = TASKS[task]
     ps = get_piece_set(set_name)
-    cfg = TaskConfig(workspace=preset.workspace).chaos_config(preset.view_extent)
+    cfg = preset.chaos_config()
     poses, modes = generate(ps, 24, np.random.default_rng(1), cfg)
     assert set(modes.tolist()) == {0, 1}
     half = preset.view_extent / 2
