@@ -14,7 +14,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from mrchaos.camera import require_headless_gl
+from mrchaos.opengl import make_renderer
 
 __all__ = ["SceneRenderer", "write_video"]
 
@@ -32,9 +32,8 @@ class SceneRenderer:
     def __init__(self, model: mujoco.MjModel, width: int = 320, height: int = 240,
                  lookat: tuple[float, float, float] = (0.12, -0.12, 0.08), distance: float = 1.25,
                  azimuth: float = 120.0, elevation: float = -40.0) -> None:
-        require_headless_gl()
         self.model = model
-        self.renderer = mujoco.Renderer(model, height=height, width=width)
+        self.renderer = make_renderer(model, height=height, width=width)
         self.data = mujoco.MjData(model)
         self.camera = mujoco.MjvCamera()
         self.camera.lookat[:] = lookat

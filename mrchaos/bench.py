@@ -22,6 +22,7 @@ import torch
 from mrchaos.chaos import generate
 from mrchaos.checkpoint import CheckpointError, check_compatible, load_checkpoint
 from mrchaos.env import EnvConfig, TangramEnv
+from mrchaos.errors import MrchaosError
 from mrchaos.evaluate import EpisodeResults, concat_results, evaluate, policy_actor
 from mrchaos.families import FamilyRule, family_of
 from mrchaos.figure import FAMILIES, Figure
@@ -49,7 +50,7 @@ SHIPPED = {
 }
 
 
-class BenchError(ValueError):
+class BenchError(MrchaosError, ValueError):
     """Bad benchmark input: one clear line, exit code 2."""
 
 

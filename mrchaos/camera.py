@@ -4,35 +4,23 @@ It renders each world's segmentation and depth through the scene's orthographic
 ``overhead_ortho`` camera (or the reference's perspective ``overhead`` camera,
 whose 4:3 image is cropped to its centre) and turns them into the
 rasteriser's output, so the environment can use either. It costs milliseconds per
-world (OSMesa here: ``MUJOCO_GL=osmesa``), against microseconds for the rasteriser,
+world (Mesa's EGL on a CPU machine), against microseconds for the rasteriser,
 so it serves to check the rasteriser and for users who want rendered images.
 """
 
 from __future__ import annotations
 
 import atexit
-import os
 
 import mujoco
 import numpy as np
 import torch
 
+from mrchaos.opengl import make_renderer
 from mrchaos.raster import Raster, View
 from mrchaos.scene import CAMERA_HEIGHT
 
-__all__ = ["MujocoCamera", "require_headless_gl"]
-
-
-def require_headless_gl() -> None:
-    """Raise a clear error when MuJoCo picked a windowed OpenGL backend on a machine without a display."""
-    from mujoco.rendering.classic import gl_context
-
-    backend = os.environ.get("MUJOCO_GL", "")
-    if not os.environ.get("DISPLAY") and getattr(gl_context, "_MUJOCO_GL", backend) not in ("osmesa", "egl"):
-        raise RuntimeError(
-            "MuJoCo rendering needs headless OpenGL, but mujoco was imported before MUJOCO_GL was set "
-            "(torchrl imports it): set MUJOCO_GL=osmesa in the environment, or import mrchaos first"
-        )
+__all__ = ["MujocoCamera"]
 
 
 class MujocoCamera:
@@ -46,14 +34,13 @@ class MujocoCamera:
     """
 
     def __init__(self, worlds, view: View = View(), camera: str = "overhead_ortho") -> None:
-        require_headless_gl()
         self.worlds = worlds
         self.view = view
         self.camera = camera
         model = worlds.model
         self._perspective = camera == "overhead"
         w = view.size * 4 // 3 if self._perspective else view.size
-        self.renderer = mujoco.Renderer(model, height=view.size, width=w)
+        self.renderer = make_renderer(model, height=view.size, width=w)
         # geom id -> piece id (the body's index among the pieces), -1 for the table and the rest.
         names = worlds.piece_set.names
         self._geom_piece = np.full(model.ngeom + 1, -1, dtype=np.int64)

@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from mrchaos.errors import MrchaosError
 from mrchaos.figure_io import write_atomic
 
 __all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "check_compatible", "FORMAT"]
@@ -22,7 +23,7 @@ __all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "check_compa
 FORMAT = 1
 
 
-class CheckpointError(RuntimeError):
+class CheckpointError(MrchaosError, RuntimeError):
     """A missing, corrupt or incompatible checkpoint; the message names the file."""
 
 

@@ -19,6 +19,7 @@ import yaml
 
 from mrchaos.bc import BCConfig
 from mrchaos.env import EnvConfig
+from mrchaos.errors import MrchaosError
 from mrchaos.policy import PolicyConfig
 from mrchaos.task import TaskConfig
 
@@ -36,7 +37,7 @@ __all__ = [
 ]
 
 
-class ConfigError(ValueError):
+class ConfigError(MrchaosError, ValueError):
     """A bad configuration file or override."""
 
 

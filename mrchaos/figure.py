@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from mrchaos.errors import MrchaosError
 from mrchaos.geometry import convex_penetration, fit_pose, polygon_area, rigid_transform
 from mrchaos.pieces import PieceSet
 from mrchaos.raster import View, rasterize
@@ -23,7 +24,7 @@ __all__ = ["Figure", "FigureError", "figure_from_polygons", "FAMILIES"]
 FAMILIES = ("Random", "H-Normal", "H-Hard", "H-Fiendish")
 
 
-class FigureError(ValueError):
+class FigureError(MrchaosError, ValueError):
     """A figure or figure file is invalid; the message names the file and the figure."""
 
 

@@ -134,7 +134,7 @@ def test_mismatched_checkpoint_is_refused(tmp_path, capsys):
         assert msg in err and f"{key}.pt" in err
 
 
-def test_bench_robot_placement_films_and_perturbs(tmp_path, capsys):
+def test_bench_robot_placement_films_and_perturbs(tmp_path, capsys, rendering):
     import shutil
     import subprocess
 

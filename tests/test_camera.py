@@ -1,6 +1,7 @@
-"""The MuJoCo camera path against the rasteriser (needs OSMesa: apt-get install libosmesa6)."""
+"""The MuJoCo camera path against the rasteriser (needs headless OpenGL: Mesa's EGL or OSMesa)."""
 
 import numpy as np
+import pytest
 import torch
 from tensordict import TensorDict
 
@@ -8,6 +9,8 @@ from mrchaos.camera import MujocoCamera
 from mrchaos.env import EnvConfig, TangramEnv
 from mrchaos.raster import rasterize
 from mrchaos.task import TaskConfig
+
+pytestmark = pytest.mark.usefixtures("rendering")
 
 
 def _scenes(n_worlds: int, seed: int) -> TangramEnv:

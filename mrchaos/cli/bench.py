@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mrchaos.cli.guard import run_command
+
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrchaos-bench", description=__doc__)
@@ -35,66 +37,65 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--worlds", type=int, default=64, help="worlds evaluated at once")
     args = ap.parse_args(argv)
+    return run_command("mrchaos-bench", lambda: _bench(args))
+
+
+def _bench(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
-    try:
-        from mrchaos.bench import Bench, format_table, parse_families, resolve_policy, write_outputs
-        from mrchaos.checkpoint import CheckpointError
-        from mrchaos.figure import FigureError
-        from mrchaos.figure_io import FigureSet, load_figures
-        from mrchaos.library import builtin_figures
+    from mrchaos.bench import Bench, format_table, parse_families, resolve_policy, write_outputs
+    from mrchaos.figure_io import FigureSet, load_figures
+    from mrchaos.library import builtin_figures
 
-        families = parse_families(args.families, args.task)
-        default = "mrchaos" if args.task == "tangram" else f"mrchaos-{args.task}"
-        specs = [resolve_policy(p) for p in (args.policy or [default])]
-        if args.figures:
-            sets = [load_figures(p) for p in args.figures]
-        elif args.task == "tangram":
-            sets = [FigureSet("builtin", builtin_figures(), source="built-in library")]
-        else:
-            from mrchaos.goals import task_goals
+    families = parse_families(args.families, args.task)
+    default = "mrchaos" if args.task == "tangram" else f"mrchaos-{args.task}"
+    specs = [resolve_policy(p) for p in (args.policy or [default])]
+    if args.figures:
+        sets = [load_figures(p) for p in args.figures]
+    elif args.task == "tangram":
+        sets = [FigureSet("builtin", builtin_figures(), source="built-in library")]
+    else:
+        from mrchaos.goals import task_goals
 
-            sets = [FigureSet(args.task, task_goals(args.task), source=f"mrchaos.goals ({args.task})")]
-        if args.video and args.video.suffix.lower() not in (".gif", ".mp4"):
-            raise ValueError(f"{args.video}: --video must end in .gif or .mp4")
-        film = args.placement == "robot" and (args.record or args.video)
-        if args.video and args.placement != "robot":
-            raise ValueError("--video films the robot: it needs --placement robot")
-        bench = Bench(sets, families, args.random_objects, args.seed, args.placement, args.worlds,
-                      robot_model=args.robot_model, perturb_after=args.perturb,
-                      perturb_distance=args.perturb_distance, scenes=max(args.scenes, 1 if args.video else 0) if film else 0,
-                      task=args.task)
-        for fid, why in bench.skipped:
-            print(f"skipped {fid}: {why}", file=sys.stderr)
-        recorder = None
-        if args.record:
-            from mrchaos.rerun_logger import EpisodeRecorder
+        sets = [FigureSet(args.task, task_goals(args.task), source=f"mrchaos.goals ({args.task})")]
+    if args.video and args.video.suffix.lower() not in (".gif", ".mp4"):
+        raise ValueError(f"{args.video}: --video must end in .gif or .mp4")
+    film = args.placement == "robot" and (args.record or args.video)
+    if args.video and args.placement != "robot":
+        raise ValueError("--video films the robot: it needs --placement robot")
+    if film:
+        from mrchaos.opengl import choose_backend
 
-            env = bench.make_env(specs[0])
-            recorder = EpisodeRecorder(args.record, bench.piece_set.names, (env.grid.xs, env.grid.ys), env.view.extent)
-            env.close()
-        results = bench.run(specs, recorder)
-        if recorder is not None:
-            recorder.close()
-        results["sources"] = [fs.source for fs in sets]
-        results["random_objects"] = args.random_objects
-        write_outputs(results, families, args.out)
-        _contact_sheet(bench, specs, args.out)
-        if args.video:
-            from mrchaos.animation import write_video
+        choose_backend()  # fail before the evaluation, not after it
+    bench = Bench(sets, families, args.random_objects, args.seed, args.placement, args.worlds,
+                  robot_model=args.robot_model, perturb_after=args.perturb,
+                  perturb_distance=args.perturb_distance, scenes=max(args.scenes, 1 if args.video else 0) if film else 0,
+                  task=args.task)
+    for fid, why in bench.skipped:
+        print(f"skipped {fid}: {why}", file=sys.stderr)
+    recorder = None
+    if args.record:
+        from mrchaos.rerun_logger import EpisodeRecorder
 
-            write_video(bench.video_frames, args.video, fps=bench.scene_fps * 2)
-            print(f"wrote {args.video} ({len(bench.video_frames)} frames, twice real time)")
-        print(format_table(results, families))
-        if bench.skipped:
-            print(f"({len(bench.skipped)} figures skipped: see results.md)")
-        print(f"wrote {args.out}/results.{{json,csv,md}} and contact_sheet.png in {time.perf_counter() - t0:.0f} s")
-        return 0
-    except (FigureError, CheckpointError, OSError) as e:
-        print(f"mrchaos-bench: error: {e}", file=sys.stderr)
-        return 2
-    except ValueError as e:  # BenchError and bad values
-        print(f"mrchaos-bench: error: {e}", file=sys.stderr)
-        return 2
+        env = bench.make_env(specs[0])
+        recorder = EpisodeRecorder(args.record, bench.piece_set.names, (env.grid.xs, env.grid.ys), env.view.extent)
+        env.close()
+    results = bench.run(specs, recorder)
+    if recorder is not None:
+        recorder.close()
+    results["sources"] = [fs.source for fs in sets]
+    results["random_objects"] = args.random_objects
+    write_outputs(results, families, args.out)
+    _contact_sheet(bench, specs, args.out)
+    if args.video:
+        from mrchaos.animation import write_video
+
+        write_video(bench.video_frames, args.video, fps=bench.scene_fps * 2)
+        print(f"wrote {args.video} ({len(bench.video_frames)} frames, twice real time)")
+    print(format_table(results, families))
+    if bench.skipped:
+        print(f"({len(bench.skipped)} figures skipped: see results.md)")
+    print(f"wrote {args.out}/results.{{json,csv,md}} and contact_sheet.png in {time.perf_counter() - t0:.0f} s")
+    return 0
 
 
 def _contact_sheet(bench, specs, out: Path, per_family: int = 6) -> None:

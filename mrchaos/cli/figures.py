@@ -6,18 +6,23 @@ import argparse
 import sys
 from collections import Counter
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+from mrchaos.cli.guard import run_command
+from mrchaos.errors import MrchaosError
 
-from mrchaos.chaos import ChaosCache, ChaosConfig
-from mrchaos.families import FamilyRule, confusion_table, family_of, silhouette_perimeter_px
-from mrchaos.figure import Figure, FigureError
-from mrchaos.figure_io import FigureSet, load_figures, save_figures
-from mrchaos.library import builtin_figures
-from mrchaos.pieces import get_piece_set, piece_set_names
-from mrchaos.sheet import figure_sheet, save_png
+if TYPE_CHECKING:
+    from mrchaos.figure_io import FigureSet
+
+# The commands import the figure stack (torch, shapely, OpenCV) when they run, so that a
+# broken dependency is reported by run_command as one line instead of failing this import.
+_FIGURE_STACK = ("numpy", "torch", "shapely", "cv2", "PIL")
 
 
 def _load(paths: list[str] | None) -> list[FigureSet]:
+    from mrchaos.figure_io import FigureSet, load_figures
+    from mrchaos.library import builtin_figures
+
     if not paths:
         return [FigureSet("builtin", builtin_figures(), source="builtin")]
     return [load_figures(p) for p in paths]
@@ -33,11 +38,14 @@ def _report_rejected(sets: list[FigureSet]) -> int:
 
 
 def cmd_sheet(args: argparse.Namespace) -> int:
+    from mrchaos.families import FamilyRule, family_of
+    from mrchaos.sheet import figure_sheet, save_png
+
     sets = _load(args.figures)
     _report_rejected(sets)
     figs = [f for fs in sets for f in fs.figures]
     if not figs:
-        raise FigureError("no valid figures to draw")
+        raise MrchaosError("no valid figures to draw")
     rule = FamilyRule()
     for f in figs:
         f.family = family_of(f, rule)
@@ -55,6 +63,8 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_families(args: argparse.Namespace) -> int:
+    from mrchaos.families import FamilyRule, confusion_table, silhouette_perimeter_px
+
     sets = _load(args.figures)
     _report_rejected(sets)
     rule = FamilyRule()
@@ -68,17 +78,22 @@ def cmd_families(args: argparse.Namespace) -> int:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
+    from mrchaos.figure_io import save_figures
+
     sets = _load(args.figures)
     _report_rejected(sets)
-    figs: list[Figure] = [f for fs in sets for f in fs.figures]
+    figs = [f for fs in sets for f in fs.figures]
     if not figs:
-        raise FigureError("no valid figures to write")
+        raise MrchaosError("no valid figures to write")
     save_figures(figs, args.out, name=args.name or Path(args.out).stem)
     print(f"wrote {args.out}: {len(figs)} figures")
     return 0
 
 
 def cmd_chaos(args: argparse.Namespace) -> int:
+    from mrchaos.chaos import ChaosCache, ChaosConfig
+    from mrchaos.pieces import get_piece_set
+
     cfg = ChaosConfig(mode=args.mode)
     cache = ChaosCache.build(get_piece_set(args.piece_set), args.n, args.seed, cfg)
     cache.save(args.out)
@@ -116,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--n", type=int, default=4096)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--mode", default="mix", choices=["scatter", "attract", "mix"])
-    s.add_argument("--piece-set", default="tangram7", choices=piece_set_names())
+    s.add_argument("--piece-set", default="tangram7", help="a registered piece set (tangram7, cutlery, soda3..soda6, or your own)")
     s.add_argument("--out", required=True)
     s.set_defaults(fn=cmd_chaos)
     return p
@@ -124,12 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        return args.fn(args)
-    except (FigureError, ValueError, KeyError, OSError) as e:
-        msg = e.args[0] if isinstance(e, KeyError) and e.args else e
-        print(f"mrchaos-figures: error: {msg}", file=sys.stderr)
-        return 2
+    return run_command("mrchaos-figures", lambda: args.fn(args), dependencies=_FIGURE_STACK)
 
 
 if __name__ == "__main__":

@@ -7,6 +7,8 @@ import csv
 import sys
 from pathlib import Path
 
+from mrchaos.cli.guard import run_command
+
 
 def read_metrics(run_dir: Path) -> list[dict[str, float]]:
     path = Path(run_dir) / "metrics.csv"
@@ -61,13 +63,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, help="PNG path (default: RUN_DIR/learning_curve.png)")
     args = ap.parse_args(argv)
     out = args.out or args.runs[0] / "learning_curve.png"
-    try:
+
+    def body() -> int:
         plot_runs(args.runs, out)
-    except (FileNotFoundError, ValueError, KeyError) as e:
-        print(f"mrchaos-plot: error: {e}", file=sys.stderr)
-        return 2
-    print(f"wrote {out}")
-    return 0
+        print(f"wrote {out}")
+        return 0
+
+    return run_command("mrchaos-plot", body, dependencies=("numpy", "matplotlib"))
 
 
 if __name__ == "__main__":

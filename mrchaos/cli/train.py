@@ -7,8 +7,7 @@ import logging
 import sys
 from pathlib import Path
 
-from mrchaos.checkpoint import CheckpointError
-from mrchaos.config import ConfigError, load_config
+from mrchaos.cli.guard import run_command
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -19,47 +18,49 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--eval", type=int, default=200, help="Random objects for the final greedy evaluation (0: skip)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    try:
-        from mrchaos.train import Trainer, resume_config
+    return run_command("mrchaos-train", lambda: _train(ap, args))
 
-        if args.resume:
-            run_dir = Path(args.resume)
-            cfg = resume_config(run_dir)
-            if args.overrides or args.config:
-                extra = ([args.config] if args.config else []) + args.overrides
-                cfg = load_config(run_dir / "config.yaml", extra)
-            if not (run_dir / "checkpoints" / "last.pt").exists():
-                raise CheckpointError(f"{run_dir}: no checkpoints/last.pt to resume from")
-            trainer = Trainer(cfg, run_dir, resume=True)
-        else:
-            if not args.config:
-                ap.error("a config file is required (or --resume RUN_DIR)")
-            cfg = load_config(args.config, args.overrides)
-            run_dir = Path(cfg.runs_dir) / cfg.name
-            if (run_dir / "checkpoints" / "last.pt").exists():
-                raise ConfigError(
-                    f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another name=..."
-                )
-            if cfg.algo == "bc":
-                from mrchaos.bc import train_bc
 
-                res = train_bc(cfg, run_dir)
-                print(f"{run_dir}: behaviour cloning on {res['samples']} demonstration steps from "
-                      f"{res['figures']} figures, final NLL {res['nll']:.3f}; greedy on {res['n']} Random objects: "
-                      f"Rela {res['rela']:.3f} Final {res['final']:.3f}")
-                return 0
-            trainer = Trainer(cfg, run_dir)
-        result = trainer.run()
-        print(f"{run_dir}: {result['iteration']} iterations, {result['frames']} frames"
-              + (" (stopped by signal)" if result["stopped"] else ""))
-        if args.eval > 0 and not result["stopped"]:
-            ev = trainer.finish(args.eval)
-            print(f"greedy on {ev['n']} Random objects: Rela {ev['rela']:.3f}  Final {ev['final']:.3f}  "
-                  f"IoU {ev['iou']:.3f}  strict Rela {ev['strict_rela']:.3f}")
-        return 0
-    except (ConfigError, CheckpointError, FileNotFoundError, ValueError) as e:
-        print(f"mrchaos-train: error: {e}", file=sys.stderr)
-        return 2
+def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    from mrchaos.checkpoint import CheckpointError
+    from mrchaos.config import ConfigError, load_config
+    from mrchaos.train import Trainer, resume_config
+
+    if args.resume:
+        run_dir = Path(args.resume)
+        cfg = resume_config(run_dir)
+        if args.overrides or args.config:
+            extra = ([args.config] if args.config else []) + args.overrides
+            cfg = load_config(run_dir / "config.yaml", extra)
+        if not (run_dir / "checkpoints" / "last.pt").exists():
+            raise CheckpointError(f"{run_dir}: no checkpoints/last.pt to resume from")
+        trainer = Trainer(cfg, run_dir, resume=True)
+    else:
+        if not args.config:
+            ap.error("a config file is required (or --resume RUN_DIR)")
+        cfg = load_config(args.config, args.overrides)
+        run_dir = Path(cfg.runs_dir) / cfg.name
+        if (run_dir / "checkpoints" / "last.pt").exists():
+            raise ConfigError(
+                f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another name=..."
+            )
+        if cfg.algo == "bc":
+            from mrchaos.bc import train_bc
+
+            res = train_bc(cfg, run_dir)
+            print(f"{run_dir}: behaviour cloning on {res['samples']} demonstration steps from "
+                  f"{res['figures']} figures, final NLL {res['nll']:.3f}; greedy on {res['n']} Random objects: "
+                  f"Rela {res['rela']:.3f} Final {res['final']:.3f}")
+            return 0
+        trainer = Trainer(cfg, run_dir)
+    result = trainer.run()
+    print(f"{run_dir}: {result['iteration']} iterations, {result['frames']} frames"
+          + (" (stopped by signal)" if result["stopped"] else ""))
+    if args.eval > 0 and not result["stopped"]:
+        ev = trainer.finish(args.eval)
+        print(f"greedy on {ev['n']} Random objects: Rela {ev['rela']:.3f}  Final {ev['final']:.3f}  "
+              f"IoU {ev['iou']:.3f}  strict Rela {ev['strict_rela']:.3f}")
+    return 0
 
 
 if __name__ == "__main__":
