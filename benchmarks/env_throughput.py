@@ -14,47 +14,22 @@ from __future__ import annotations
 import argparse
 import resource
 import time
-from collections import defaultdict
 
 import torch
 
-import mrchaos.env as env_mod
 from mrchaos.env import EnvConfig, TangramEnv
 from mrchaos.oracle import oracle_actions
-from mrchaos.task import TaskConfig
-
-TIMES: dict[str, float] = defaultdict(float)
-
-
-def _timed(name, fn):
-    def wrapper(*a, **k):
-        t = time.perf_counter()
-        try:
-            return fn(*a, **k)
-        finally:
-            TIMES[name] += time.perf_counter() - t
-
-    return wrapper
-
-
-def _instrument(env: TangramEnv) -> None:
-    batch = env.worlds.batch
-    step = batch.step
-    env.worlds.batch = type("TimedBatch", (), {})()
-    env.worlds.batch.step = _timed("physics", step)
-    env.worlds.batch.reset = batch.reset
-    env_mod.rasterize = _timed("images", env_mod.rasterize)
-    env_mod.joint_counts = _timed("reward", env_mod.joint_counts)
-
+from mrchaos.task import CacheConfig, TaskConfig
+from mrchaos.worlds import PhysicsConfig
 
 def run(n: int, policy: str, episodes: int, threads: int) -> dict:
     torch.set_num_threads(threads)
-    env = TangramEnv(EnvConfig(num_worlds=n, nthread=threads, task=TaskConfig(cache_size=512)), seed=0)
-    _instrument(env)
+    env = TangramEnv(EnvConfig(num_worlds=n, physics=PhysicsConfig(nthread=threads),
+                               task=TaskConfig(cache=CacheConfig(size=512))), seed=0)
     g = torch.Generator().manual_seed(0)
     nvec = torch.tensor(env.grid.nvec)
     td = env.reset()
-    TIMES.clear()
+    start = env.timings()
     steps = 0
     t0 = time.perf_counter()
     for _ in range(episodes * env.num_pieces):
@@ -66,9 +41,10 @@ def run(n: int, policy: str, episodes: int, threads: int) -> dict:
             td = env.reset(td.set("_reset", nxt["done"].clone()))
         steps += n
     wall = time.perf_counter() - t0
-    out = {"sps": steps / wall, "physics_share": env.worlds.physics_share, "wall": wall}
+    spent = env.timings()
+    out = {"sps": steps / wall, "physics_share": spent["physics_share"], "wall": wall}
     for k in ("physics", "images", "reward"):
-        out[k] = TIMES[k] / wall
+        out[k] = (spent[k] - start[k]) / wall
     out["other"] = 1 - sum(out[k] for k in ("physics", "images", "reward"))
     return out
 
@@ -79,14 +55,9 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=4)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
-    import mrchaos.metrics
-    import mrchaos.raster
-
     print(f"{'N':>5} {'policy':>7} {'steps/s':>9} {'physics%':>9} | time share: physics images reward other")
     for n in args.worlds:
         for policy in ("random", "oracle"):
-            env_mod.rasterize = mrchaos.raster.rasterize
-            env_mod.joint_counts = mrchaos.metrics.joint_counts
             r = run(n, policy, args.episodes, args.threads)
             print(
                 f"{n:>5} {policy:>7} {r['sps']:>9.0f} {100 * r['physics_share']:>8.1f}% | "

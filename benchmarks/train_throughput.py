@@ -40,9 +40,9 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             frames = 4096 * (args.iterations + 1)
             cfg = load_config(ROOT / "conf" / "full.yaml", VARIANTS[name] + [
-                f"runs_dir={tmp}", "name=bench", f"threads={args.threads}", f"env.nthread={args.threads}",
+                f"runs_dir={tmp}", "name=bench", f"threads={args.threads}", f"env.physics.nthread={args.threads}",
                 f"collector.total_frames={frames}", "collector.max_minutes=0", "logger.rerun=false",
-                "logger.progress=false", "checkpoint.every=100000", "task.cache_path=null", "task.cache_size=1024",
+                "logger.progress=false", "checkpoint.every=100000", "task.cache.path=null", "task.cache.size=1024",
                 *args.overrides,
             ])
             trainer = Trainer(cfg, Path(tmp) / "bench")

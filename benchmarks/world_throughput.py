@@ -20,11 +20,11 @@ import numpy as np
 import torch
 
 from mrchaos.chaos import attract, scatter
-from mrchaos.goals import TASKS
+from mrchaos.config import config_from_dict
+from mrchaos.goals import PRESETS
 from mrchaos.metrics import coverage_counts, piece_coverage
 from mrchaos.pieces import get_piece_set
-from mrchaos.raster import View, rasterize
-from mrchaos.task import TaskConfig
+from mrchaos.raster import rasterize
 
 
 def _median_time(fn, repeats: int) -> float:
@@ -39,21 +39,20 @@ def _median_time(fn, repeats: int) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--task", default="tangram", choices=["tangram", *TASKS])
+    ap.add_argument("--task", default="tangram", choices=sorted(PRESETS))
     ap.add_argument("--batch", type=int, default=256)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--chaos", type=int, default=256, help="objects per chaos timing")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    preset = TASKS.get(args.task)
-    ps = get_piece_set(preset.piece_set if preset else "tangram7")
-    view = View(preset.view_extent) if preset else View()
-    chaos = preset.chaos_config() if preset else TaskConfig().chaos_config(view.extent)
+    cfg = config_from_dict({"task": {"preset": args.task}})
+    ps = get_piece_set(cfg.env.piece_set)
+    view, chaos = cfg.env.view, cfg.task.chaos
     p = len(ps)
     rng = np.random.default_rng(0)
     b = args.batch
-    target = scatter(ps, b, rng, chaos)
+    target = scatter(ps, b, rng, chaos, view)
     current = target + np.concatenate([rng.normal(0, 0.004, (b, p, 2)), rng.normal(0, 0.1, (b, p, 1))], -1)
     tpoly, cpoly = ps.footprints(target), ps.footprints(current)
     parts = ps.part_piece if ps.parts_per_piece > 1 else None
@@ -83,7 +82,7 @@ def main() -> None:
     n = args.chaos
     for name, fn in (("scatter", scatter), ("attract", attract)):
         t = time.perf_counter()
-        fn(ps, n, np.random.default_rng(1), chaos)
+        fn(ps, n, np.random.default_rng(1), chaos, view)
         print(f"  chaos {name:8s} {(time.perf_counter() - t) / n * 1e3:8.2f} ms/object  ({n} objects)")
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"  peak RSS {peak:.0f} MiB")

@@ -15,7 +15,6 @@ import json
 import logging
 import math
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -23,44 +22,27 @@ import torch
 import yaml
 from tensordict import TensorDict
 
-from mrchaos.checkpoint import save_checkpoint
+from mrchaos.checkpoint import policy_header, save_checkpoint
+from mrchaos.config import TrainConfig, config_to_dict
 from mrchaos.env import TangramEnv
-from mrchaos.evaluate import evaluate
+from mrchaos.evaluate import evaluate, evaluate_random
 from mrchaos.figure import Figure
-from mrchaos.figure_io import write_atomic
+from mrchaos.figure_io import load_figures
+from mrchaos.library import builtin_figures
+from mrchaos.atomic import write_atomic
 from mrchaos.geometry import rigid_transform
 from mrchaos.oracle import oracle_actions
 from mrchaos.policy import build_actor_critic
 
-__all__ = ["BCConfig", "augment", "demonstrations", "train_bc"]
+__all__ = ["augment", "demonstrations", "train_bc"]
 
 log = logging.getLogger("mrchaos.bc")
 
 
-@dataclass
-class BCConfig:
-    """Behaviour-cloning data and optimisation.
-
-    Attributes:
-        figure_sets: figures to demonstrate ("builtin" = the shipped library).
-        rotations: rotate each figure by k * 360/rotations degrees, k < rotations.
-        shifts: random shifts per rotation (plus the unshifted figure).
-        max_shift: largest shift (m); figures that would leave the view are not shifted.
-        epochs: passes over the demonstrations.
-        minibatch_size: samples per gradient step.
-    """
-
-    figure_sets: list[str] = field(default_factory=lambda: ["builtin"])
-    rotations: int = 8
-    shifts: int = 3
-    max_shift: float = 0.02
-    epochs: int = 20
-    minibatch_size: int = 256
-
-
 def augment(figures: list[Figure], rotations: int, shifts: int, max_shift: float, rng: np.random.Generator,
-            view_half: float = 0.125) -> np.ndarray:
-    """(M, P, 3) target poses: each figure rotated about its centre and shifted, kept inside the view."""
+            bound: float) -> np.ndarray:
+    """(M, P, 3) target poses: each figure rotated about its centre and shifted, every vertex kept
+    within ``bound`` metres of the centre (inside the view)."""
     out = []
     for f in figures:
         for k in range(rotations):
@@ -74,7 +56,7 @@ def augment(figures: list[Figure], rotations: int, shifts: int, max_shift: float
                 d = np.zeros(2) if j == 0 else rng.uniform(-max_shift, max_shift, 2)
                 cand = rot.copy()
                 cand[:, :2] += d
-                if np.abs(rigid_transform(outline, cand)).max() <= view_half:
+                if np.abs(rigid_transform(outline, cand)).max() <= bound:
                     out.append(cand)
     return np.stack(out)
 
@@ -87,13 +69,8 @@ def demonstrations(env: TangramEnv, targets: np.ndarray) -> tuple[torch.Tensor, 
     return obs, acts
 
 
-def train_bc(cfg, run_dir: Path) -> dict:
+def train_bc(cfg: TrainConfig, run_dir: Path) -> dict:
     """Train the configured network by behaviour cloning; writes a checkpoint like PPO's."""
-    from mrchaos.config import config_to_dict
-    from mrchaos.figure_io import load_figures
-    from mrchaos.library import builtin_figures
-    from mrchaos.train import evaluate_random
-
     run_dir = Path(run_dir)
     (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
     write_atomic(run_dir / "config.yaml", yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
@@ -104,7 +81,7 @@ def train_bc(cfg, run_dir: Path) -> dict:
     for src in cfg.bc.figure_sets:
         figs += builtin_figures() if src == "builtin" else load_figures(src).figures
     figs = [f for f in figs if not f.has_mirrored]
-    targets = augment(figs, cfg.bc.rotations, cfg.bc.shifts, cfg.bc.max_shift, rng)
+    targets = augment(figs, cfg.bc.rotations, cfg.bc.shifts, cfg.bc.max_shift, rng, cfg.task.chaos.bound(cfg.env.view))
     env = TangramEnv(dataclasses.replace(cfg.env_config(), num_worlds=min(128, len(targets))), seed=cfg.seed)
     t0 = time.perf_counter()
     obs, acts = demonstrations(env, targets)
@@ -132,14 +109,12 @@ def train_bc(cfg, run_dir: Path) -> dict:
         rows.append({"epoch": epoch + 1, "nll": total / count})
         log.info("bc epoch %d: nll %.3f", epoch + 1, total / count)
     state = {
-        "kind": "mrchaos-policy", "config": config_to_dict(cfg), "policy": config_to_dict(cfg.policy),
-        "piece_set": env.piece_set.name, "obs_shape": [2, env.view.size, env.view.size],
-        "grid": list(env.grid.nvec), "view_extent": env.view.extent, "model": ac.state_dict(),
+        **policy_header(env, config_to_dict(cfg.policy)), "config": config_to_dict(cfg), "model": ac.state_dict(),
         "curriculum": {"stage": 0, "switched_at": -1}, "iteration": cfg.bc.epochs, "frames": n,
         "episodes": len(targets), "minutes": (time.perf_counter() - t0) / 60,
     }
     save_checkpoint(run_dir / "checkpoints" / "last.pt", state)
     write_atomic(run_dir / "metrics.csv", "epoch,nll\n" + "".join(f"{r['epoch']},{r['nll']:.6f}\n" for r in rows))
-    ev = evaluate_random(policy, cfg, n=100)
+    ev = evaluate_random(policy, cfg.env_config(), n=100)
     write_atomic(run_dir / "eval.json", json.dumps(ev, indent=1) + "\n")
     return {"samples": n, "figures": len(figs), "nll": rows[-1]["nll"] if rows else float("nan"), **ev}

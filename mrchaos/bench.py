@@ -9,7 +9,6 @@ strict Rela (ours), with a 95 % interval (1.96 standard errors) and the count.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from dataclasses import dataclass, field
@@ -20,23 +19,21 @@ import numpy as np
 import torch
 
 from mrchaos.chaos import generate
-from mrchaos.checkpoint import CheckpointError, check_compatible, load_checkpoint
-from mrchaos.env import EnvConfig, TangramEnv
+from mrchaos.checkpoint import CheckpointError, check_header, load_checkpoint, policy_env
+from mrchaos.config import config_from_dict
+from mrchaos.env import TangramEnv
 from mrchaos.errors import MrchaosError
 from mrchaos.evaluate import EpisodeResults, concat_results, evaluate, policy_actor
 from mrchaos.families import FamilyRule, family_of
-from mrchaos.figure import FAMILIES, Figure
-from mrchaos.figure_io import FigureSet, write_atomic
+from mrchaos.figure import Figure
+from mrchaos.atomic import write_atomic
+from mrchaos.figure import FigureSet
 from mrchaos.oracle import oracle_actions
-from mrchaos.goals import TASKS
+from mrchaos.goals import PRESETS, TaskPreset
 from mrchaos.pieces import get_piece_set, piece_set_names
-from mrchaos.task import TaskConfig
 
-__all__ = ["BenchError", "PolicySpec", "resolve_policy", "FAMILY_NAMES", "parse_families", "Bench", "SHIPPED"]
+__all__ = ["BenchError", "PolicySpec", "resolve_policy", "parse_families", "Bench", "SHIPPED"]
 
-FAMILY_NAMES = {f.lower(): f for f in FAMILIES}
-#: Families of the extension tasks: our authored goals, and seeded chaos objects.
-TASK_FAMILIES = ("Authored", "Random")
 METRICS = ("rela", "final", "iou", "strict_rela")
 #: Learnt policies shipped with the package: name -> (file, label).
 SHIPPED = {
@@ -90,17 +87,17 @@ def resolve_policy(spec: str) -> PolicySpec:
     return PolicySpec(Path(spec).name, f"{Path(spec).name} ({p})", "checkpoint", str(p), load_checkpoint(p))
 
 
-def check_task(task: str) -> None:
-    """Raise :class:`BenchError` unless ``task`` is tangram or one of :data:`mrchaos.goals.TASKS`."""
-    if task != "tangram" and task not in TASKS:
-        raise BenchError(f"unknown task {task!r}; use tangram or one of {sorted(TASKS)}")
+def check_task(task: str) -> TaskPreset:
+    """The preset of ``task``, or :class:`BenchError` naming the known ones."""
+    if task not in PRESETS:
+        raise BenchError(f"unknown task {task!r}; use one of {sorted(PRESETS)}")
+    return PRESETS[task]
 
 
 def parse_families(text: str, task: str = "tangram") -> list[str]:
-    """'all' or a comma-separated list: random, h-normal, h-hard, h-fiendish for the tangram,
-    authored and random for the extension tasks."""
-    check_task(task)
-    known = FAMILY_NAMES if task == "tangram" else {f.lower(): f for f in TASK_FAMILIES}
+    """'all' or a comma-separated list of the task's families: random, h-normal, h-hard,
+    h-fiendish for the tangram, authored and random for the others."""
+    known = {f.lower(): f for f in check_task(task).families}
     if text.strip().lower() == "all":
         return list(known.values())
     out = []
@@ -124,7 +121,8 @@ class Bench:
     """Evaluates policies on families.
 
     Args:
-        figure_sets: human figure sets (their figures are grouped by family).
+        figure_sets: figure sets to evaluate on (grouped by family); None for the task's own
+            goals (for tangram, the built-in library).
         families: families to run.
         random_objects: Random objects (seeded; the same set every run).
         seed: seed of the Random objects.
@@ -136,13 +134,13 @@ class Bench:
         scenes: with robot placement, how many episodes per policy and family are filmed
             (rendered scene frames for the recording and the video).
         scene_fps: film frames per simulated second.
-        task: "tangram" (families Random, H-Normal, H-Hard, H-Fiendish) or an extension task
-            of :data:`mrchaos.goals.TASKS` (families Authored and Random).
+        task: a preset of :data:`mrchaos.goals.PRESETS`: "tangram" (families Random, H-Normal,
+            H-Hard, H-Fiendish), "cutlery" or "soda" (families Authored and Random).
     """
 
     def __init__(
         self,
-        figure_sets: list[FigureSet],
+        figure_sets: list[FigureSet] | None,
         families: list[str],
         random_objects: int = 200,
         seed: int = 0,
@@ -167,14 +165,17 @@ class Bench:
         self.families = families
         self.seed = seed
         self.num_worlds = num_worlds
-        check_task(task)
         self.task = task
-        self.preset = TASKS.get(task)
-        self.piece_set = get_piece_set(self.preset.piece_set if self.preset else "tangram7")
+        self.preset = check_task(task)
+        self.piece_set = get_piece_set(self.preset.piece_set)
         if perturb_after is not None and not 0 <= perturb_after < len(self.piece_set):
             raise BenchError(f"--perturb must be a step in [0, {len(self.piece_set) - 1}], got {perturb_after}")
-        chaos = self.preset.chaos_config() if self.preset else TaskConfig().chaos_config(EnvConfig().view_extent)
-        family_set = {fs.family for fs in map(get_piece_set, self.preset.random_sets)} if self.preset else {"tangram7"}
+        self.env_config = config_from_dict({"task": {"preset": task}}, f"task {task}").env_config()
+        kinds = {ps.kind for ps in map(get_piece_set, self.preset.random_sets)}
+        if figure_sets is None:
+            goals = self.preset.goal_figures(self.env_config.view)
+            figure_sets = [FigureSet(task, goals, source=f"the {task} task's goals")]
+        self.figure_sets = figure_sets
         rule = FamilyRule()
         #: family -> groups of (piece set name, target poses, episode ids); a family may mix
         #: piece sets of one family (soda goals of 3 to 6 cans).
@@ -183,7 +184,7 @@ class Bench:
         figs: list[Figure] = []
         for fs in figure_sets:
             for f in fs.figures:
-                if f.piece_set.family not in family_set:
+                if f.piece_set.kind not in kinds:
                     self.skipped.append((f.id, f"{f.where}: piece set {f.piece_set.name} is not one of this task's"))
                 elif f.has_mirrored:
                     self.skipped.append((f.id, f"{f.where}: needs a mirrored chiral piece (a suction robot cannot flip it)"))
@@ -192,18 +193,19 @@ class Bench:
         rng = np.random.default_rng(seed)
         for fam in families:
             if fam == "Random":
-                sets = self.preset.random_sets if self.preset else ("tangram7",)
+                sets = self.preset.random_sets
                 counts = [random_objects // len(sets) + (i < random_objects % len(sets)) for i in range(len(sets))]
                 groups = []
                 for name, k in zip(sets, counts):
                     if k > 0:
-                        poses = generate(get_piece_set(name), k, rng, chaos)[0]
+                        poses = generate(get_piece_set(name), k, rng, self.env_config.task.chaos,
+                                         self.env_config.view)[0]
                         groups.append((name, poses, [f"random-{i}" if len(sets) == 1 else f"random-{name}-{i}"
                                                      for i in range(k)]))
                 if groups:
                     self.targets[fam] = groups
                 continue
-            chosen = [f for f in figs if (fam == "Authored" if self.preset else family_of(f, rule) == fam)]
+            chosen = [f for f in figs if (fam == "Authored" if self.preset.authored else family_of(f, rule) == fam)]
             groups = []
             for name in dict.fromkeys(f.piece_set.name for f in chosen):
                 sub = [f for f in chosen if f.piece_set.name == name]
@@ -212,18 +214,15 @@ class Bench:
                 self.targets[fam] = groups
 
     def make_env(self, spec: PolicySpec, piece_set: str | None = None) -> TangramEnv:
-        """The env a policy is evaluated in: the task's settings, then the checkpoint's view and grid."""
-        cfg = EnvConfig(num_worlds=self.num_worlds, placement=self.placement, robot_model=self.robot_model,
-                        **(self.preset.env_overrides() if self.preset else {}))
+        """The env a policy is evaluated in: the task's settings, then the checkpoint's
+        :data:`mrchaos.checkpoint.POLICY_ENV_GROUPS` (the view, grid and image it was trained on)."""
+        env: dict = {"num_worlds": self.num_worlds, "placement": self.placement, "robot": {"model": self.robot_model},
+                     "piece_set": piece_set or self.piece_set.name}
         if spec.state is not None:
-            env_cfg = spec.state.get("config", {}).get("env", {})
-            keep = {k: env_cfg[k] for k in ("view_extent", "view_size", "grid_nx", "grid_ny", "grid_ntheta",
-                                             "grid_half_range", "view_mode", "height_levels", "twin_slots")
-                    if k in env_cfg}
-            cfg = dataclasses.replace(cfg, **keep)
-        cfg = dataclasses.replace(cfg, piece_set=piece_set or self.piece_set.name,
-                                  task=dataclasses.replace(cfg.task, cache=0.0, chaos=1.0))
-        return TangramEnv(cfg, seed=self.seed)
+            env.update(policy_env(spec.state))
+        # Targets are given at reset: a chaos-only mix keeps the sampler from loading a cache.
+        data = {"env": env, "task": {"preset": self.task, "mix": {"chaos": 1.0, "cache": 0.0, "figures": 0.0}}}
+        return TangramEnv(config_from_dict(data, f"bench env ({spec.name})").env_config(), seed=self.seed)
 
     def actor(self, spec: PolicySpec, env: TangramEnv):
         if spec.kind == "oracle":
@@ -231,16 +230,14 @@ class Bench:
         if spec.kind == "random":
             g = torch.Generator().manual_seed(self.seed)
             nvec = torch.tensor(env.grid.nvec)
-            return lambda e, td: (torch.rand((e.cfg.num_worlds, 3), generator=g) * nvec).long()
+            return lambda e, td: (torch.rand((e.batch_size[0], 3), generator=g) * nvec).long()
         from mrchaos.policy import PolicyConfig, build_actor_critic
 
         st = spec.state
         # A policy acts on any piece set of the family it was trained on (e.g. any can count).
         trained = st.get("piece_set")
-        if trained in piece_set_names() and get_piece_set(trained).family == env.piece_set.family:
-            trained = env.piece_set.name
-        check_compatible({**st, "piece_set": trained}, spec.path, env.piece_set.name,
-                         [2, env.view.size, env.view.size], env.grid.nvec)
+        same_kind = trained in piece_set_names() and get_piece_set(trained).kind == env.piece_set.kind
+        check_header(st, spec.path, env, piece_set=env.piece_set.name if same_kind else None)
         try:
             pcfg = PolicyConfig(**st["policy"])
             ac = build_actor_critic(pcfg, env.grid, env.view, env.action_spec)
@@ -266,8 +263,8 @@ class Bench:
                         if self.scenes:
                             from mrchaos.animation import SceneRenderer
 
-                            renderer = SceneRenderer(env.worlds.model)
-                            env.worlds.executor.capture_fps = self.scene_fps
+                            renderer = SceneRenderer(env.scene_model)
+                            env.film(self.scene_fps)
                         envs[set_name] = (env, self.actor(spec, env), renderer)
                     env, act, renderer = envs[set_name]
                     film = self._filmer(env, renderer, spec.name, fam, ids, record) if renderer else None
@@ -302,7 +299,7 @@ class Bench:
         first_video = not self.video_frames
 
         def on_step(start: int, t: int, nxt) -> None:
-            for w, states in sorted(env.worlds.executor.take_snapshots().items()):
+            for w, states in sorted(env.take_snapshots().items()):
                 ep = start + w
                 if ep >= min(self.scenes, len(ids)):
                     continue

@@ -25,6 +25,7 @@ import numpy as np
 
 from mrchaos.geometry import convex_penetration, rigid_transform
 from mrchaos.pieces import PieceSet
+from mrchaos.raster import View
 
 __all__ = ["ChaosConfig", "scatter", "attract", "generate", "ChaosCache", "MODES"]
 
@@ -39,7 +40,7 @@ class ChaosConfig:
         mode: "scatter", "attract" or "mix" (each object attract with ``attract_fraction``).
         attract_fraction: share of attract objects under "mix" (the paper uses half).
         workspace: piece centroids are drawn in [-workspace, workspace]^2 (m).
-        view_half: every vertex must lie within +-view_half (m) so the whole object is seen.
+        margin: every vertex stays this far (m) inside the camera view, so the whole object is seen.
         angle_step: rotations are multiples of this (rad); 0 draws continuous angles.
             The default matches the action grid's 45 degrees.
         contact_gap: the attraction stops when no piece can move this far (m).
@@ -49,7 +50,7 @@ class ChaosConfig:
     mode: str = "mix"
     attract_fraction: float = 0.5
     workspace: float = 0.10
-    view_half: float = 0.125
+    margin: float = 0.005
     angle_step: float = math.pi / 4
     contact_gap: float = 2e-4
     max_tries: int = 200
@@ -60,6 +61,10 @@ class ChaosConfig:
         if not 0.0 <= self.attract_fraction <= 1.0:
             raise ValueError(f"attract_fraction must be in [0, 1], got {self.attract_fraction}")
 
+    def bound(self, view: View) -> float:
+        """Largest |x| or |y| (m) a vertex may reach in ``view``."""
+        return view.extent / 2 - self.margin
+
 
 def _draw_angles(rng: np.random.Generator, shape: tuple[int, ...], step: float) -> np.ndarray:
     if step <= 0:
@@ -68,12 +73,14 @@ def _draw_angles(rng: np.random.Generator, shape: tuple[int, ...], step: float) 
     return rng.integers(0, n, shape) * (2 * math.pi / n) - math.pi
 
 
-def scatter(piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosConfig = ChaosConfig()) -> np.ndarray:
+def scatter(piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosConfig = ChaosConfig(),
+            view: View = View()) -> np.ndarray:
     """(n, P, 3) poses: pieces at uniformly random poses, non-overlapping, inside the view."""
     parts = _piece_parts(piece_set)  # (P, K, V, 2)
     p = len(piece_set)
     poses = np.zeros((n, p, 3))
     polys = np.zeros((n,) + parts.shape)
+    bound = cfg.bound(view)
     for k in range(p):
         todo = np.arange(n)
         for _ in range(cfg.max_tries):
@@ -82,7 +89,7 @@ def scatter(piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosCon
                 [rng.uniform(-cfg.workspace, cfg.workspace, (m, 2)), _draw_angles(rng, (m, 1), cfg.angle_step)], 1
             )
             poly = rigid_transform(parts[k], cand[:, None])  # (m, K, V, 2)
-            ok = np.abs(poly).max((1, 2, 3)) <= cfg.view_half
+            ok = np.abs(poly).max((1, 2, 3)) <= bound
             if k > 0:
                 ok &= _clear(poly, polys[todo, :k])
             poses[todo[ok], k] = cand[ok]
@@ -103,12 +110,13 @@ def attract(
     n: int,
     rng: np.random.Generator,
     cfg: ChaosConfig = ChaosConfig(),
+    view: View = View(),
     start: np.ndarray | None = None,
 ) -> np.ndarray:
     """(n, P, 3) poses: a scatter pulled together into a touching cluster, then centred."""
     parts = _piece_parts(piece_set)
     p = len(piece_set)
-    poses = scatter(piece_set, n, rng, cfg) if start is None else np.array(start, dtype=np.float64)
+    poses = scatter(piece_set, n, rng, cfg, view) if start is None else np.array(start, dtype=np.float64)
     # The point of attraction: a random point near the centre, so clusters are not all alike.
     centre = rng.uniform(-0.02, 0.02, (n, 1, 2))
     step = np.full(n, 0.01)
@@ -160,9 +168,9 @@ def _clear(poly: np.ndarray, others: np.ndarray) -> np.ndarray:
 
 
 def generate(
-    piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosConfig = ChaosConfig()
+    piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosConfig = ChaosConfig(), view: View = View()
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(n, P, 3) poses and (n,) int8 mode index (0 scatter, 1 attract) drawn as ``cfg`` says."""
+    """(n, P, 3) poses and (n,) int8 mode index (0 scatter, 1 attract) drawn as ``cfg`` says, inside ``view``."""
     if cfg.mode == "scatter":
         modes = np.zeros(n, dtype=np.int8)
     elif cfg.mode == "attract":
@@ -173,7 +181,7 @@ def generate(
     for m, fn in enumerate((scatter, attract)):
         idx = np.flatnonzero(modes == m)
         if len(idx):
-            poses[idx] = fn(piece_set, len(idx), rng, cfg)
+            poses[idx] = fn(piece_set, len(idx), rng, cfg, view)
     return poses, modes
 
 
@@ -197,14 +205,15 @@ class ChaosCache:
         return len(self.poses)
 
     @classmethod
-    def build(cls, piece_set: PieceSet, n: int, seed: int, cfg: ChaosConfig = ChaosConfig()) -> ChaosCache:
+    def build(cls, piece_set: PieceSet, n: int, seed: int, cfg: ChaosConfig = ChaosConfig(),
+              view: View = View()) -> ChaosCache:
         """Generate ``n`` objects with a seeded generator."""
-        poses, modes = generate(piece_set, n, np.random.default_rng(seed), cfg)
+        poses, modes = generate(piece_set, n, np.random.default_rng(seed), cfg, view)
         return cls(poses, modes, piece_set.name)
 
     def save(self, path: str | Path) -> None:
         """Write atomically."""
-        from mrchaos.figure_io import write_atomic
+        from mrchaos.atomic import write_atomic
 
         buf = io.BytesIO()
         np.savez_compressed(buf, poses=self.poses.astype(np.float32), modes=self.modes, piece_set=self.piece_set)

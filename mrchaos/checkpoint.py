@@ -15,10 +15,16 @@ from typing import Any
 
 import torch
 
+from mrchaos.atomic import write_atomic
+from mrchaos.config import upgrade_config_dict
 from mrchaos.errors import MrchaosError
-from mrchaos.figure_io import write_atomic
 
-__all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "check_compatible", "FORMAT"]
+__all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "policy_header", "check_header", "policy_env",
+           "POLICY_ENV_GROUPS", "FORMAT"]
+
+#: The env config groups a policy's weights depend on (its input image and its action head);
+#: an evaluation env takes them from the checkpoint.
+POLICY_ENV_GROUPS = ("view", "grid", "observation")
 
 FORMAT = 1
 
@@ -55,11 +61,34 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     return state
 
 
-def check_compatible(state: dict[str, Any], path: str | Path, piece_set: str, obs_shape, grid) -> None:
-    """Raise :class:`CheckpointError` when the checkpoint was trained for another task layout."""
-    if state.get("piece_set") != piece_set:
-        raise CheckpointError(f"{path}: trained on piece set {state.get('piece_set')!r}, not {piece_set!r}")
-    if list(state.get("obs_shape", [])) != list(obs_shape):
-        raise CheckpointError(f"{path}: observation shape {state.get('obs_shape')} does not match {list(obs_shape)}")
-    if list(state.get("grid", [])) != list(grid):
-        raise CheckpointError(f"{path}: action grid {state.get('grid')} does not match {list(grid)}")
+def policy_header(env, policy: dict[str, Any]) -> dict[str, Any]:
+    """What a checkpoint says about the env its policy acts in, beside the policy's own config."""
+    return {
+        "kind": "mrchaos-policy",
+        "policy": policy,
+        "piece_set": env.piece_set.name,
+        "obs_shape": [2, env.view.size, env.view.size],
+        "grid": list(env.grid.nvec),
+        "view_extent": env.view.extent,
+    }
+
+
+def check_header(state: dict[str, Any], path: str | Path, env, piece_set: str | None = None) -> None:
+    """Raise :class:`CheckpointError` unless the checkpoint's policy fits ``env`` (piece set, image, grid).
+
+    ``piece_set`` overrides the checkpoint's own (a policy acts on every set of its kind).
+    """
+    trained = piece_set or state.get("piece_set")
+    if trained != env.piece_set.name:
+        raise CheckpointError(f"{path}: trained on piece set {state.get('piece_set')!r}, not {env.piece_set.name!r}")
+    obs_shape = [2, env.view.size, env.view.size]
+    if list(state.get("obs_shape", [])) != obs_shape:
+        raise CheckpointError(f"{path}: observation shape {state.get('obs_shape')} does not match {obs_shape}")
+    if list(state.get("grid", [])) != list(env.grid.nvec):
+        raise CheckpointError(f"{path}: action grid {state.get('grid')} does not match {list(env.grid.nvec)}")
+
+
+def policy_env(state: dict[str, Any]) -> dict[str, Any]:
+    """The env groups of :data:`POLICY_ENV_GROUPS` the checkpoint was trained with (nested, current keys)."""
+    env = upgrade_config_dict(state.get("config", {})).get("env", {})
+    return {k: env[k] for k in POLICY_ENV_GROUPS if k in env}

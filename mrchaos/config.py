@@ -8,6 +8,7 @@ An unknown key, a value of the wrong type or a missing file raises
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import types
 import typing
@@ -17,10 +18,10 @@ from typing import Any
 
 import yaml
 
-from mrchaos.bc import BCConfig
 from mrchaos.env import EnvConfig
 from mrchaos.errors import MrchaosError
 from mrchaos.policy import PolicyConfig
+from mrchaos.goals import PRESETS, get_preset
 from mrchaos.task import TaskConfig
 
 __all__ = [
@@ -31,8 +32,11 @@ __all__ = [
     "OptimConfig",
     "LoggerConfig",
     "CheckpointConfig",
+    "BCConfig",
     "TrainConfig",
     "load_config",
+    "config_from_dict",
+    "upgrade_config_dict",
     "config_to_dict",
 ]
 
@@ -122,6 +126,27 @@ class CheckpointConfig:
 
 
 @dataclass
+class BCConfig:
+    """Behaviour-cloning data and optimisation.
+
+    Attributes:
+        figure_sets: figures to demonstrate ("builtin" = the shipped library).
+        rotations: rotate each figure by k * 360/rotations degrees, k < rotations.
+        shifts: random shifts per rotation (plus the unshifted figure).
+        max_shift: largest shift (m); figures that would leave the view are not shifted.
+        epochs: passes over the demonstrations.
+        minibatch_size: samples per gradient step.
+    """
+
+    figure_sets: list[str] = field(default_factory=lambda: ["builtin"])
+    rotations: int = 8
+    shifts: int = 3
+    max_shift: float = 0.02
+    epochs: int = 20
+    minibatch_size: int = 256
+
+
+@dataclass
 class TrainConfig:
     """A whole experiment: ``algo`` "ppo" (the method) or "bc" (behaviour cloning, the baseline)."""
 
@@ -149,6 +174,93 @@ class TrainConfig:
     def env_config(self) -> EnvConfig:
         """The env config with the task group folded in."""
         return dataclasses.replace(self.env, task=self.task)
+
+
+#: Keys of earlier releases (flat env and task groups) and where they live now. Old YAML
+#: files and the configs stored in old checkpoints load through :func:`upgrade_config_dict`.
+RENAMED: dict[str, str] = {
+    "env.view_extent": "env.view.extent",
+    "env.view_size": "env.view.size",
+    "env.grid_nx": "env.grid.nx",
+    "env.grid_ny": "env.grid.ny",
+    "env.grid_ntheta": "env.grid.ntheta",
+    "env.grid_half_range": "env.grid.half_range",
+    "env.view_mode": "env.observation.mode",
+    "env.height_levels": "env.observation.levels",
+    "env.robot_model": "env.robot.model",
+    "env.settle_steps": "env.physics.settle_steps",
+    "env.release_gap": "env.physics.release_gap",
+    "env.push_depth": "env.physics.push_depth",
+    "env.nthread": "env.physics.nthread",
+    "env.twin_slots": "env.reward.twin_slots",
+    "env.reward_shaping": "env.reward.shaping",
+    "env.shaping_threshold": "env.reward.shaping_threshold",
+    "env.penetration_gate": "env.reward.penetration_gate",
+    "env.penetration_limit": "env.reward.penetration_limit",
+    "env.angle_gate": "env.reward.angle_gate",
+    "env.angle_tolerance_deg": "env.reward.angle_tolerance_deg",
+    "env.action_noise_xy": "env.noise.action_xy",
+    "env.action_noise_theta": "env.noise.action_theta",
+    "env.camera_jitter": "env.noise.camera_jitter",
+    "task.chaos": "task.mix.chaos",
+    "task.cache": "task.mix.cache",
+    "task.figures": "task.mix.figures",
+    "task.chaos_mode": "task.chaos.mode",
+    "task.attract_fraction": "task.chaos.attract_fraction",
+    "task.angle_step": "task.chaos.angle_step",
+    "task.workspace": "task.chaos.workspace",
+    "task.cache_path": "task.cache.path",
+    "task.cache_size": "task.cache.size",
+    "task.cache_seed": "task.cache.seed",
+}
+
+
+def _get_dotted(data: dict, dotted: str) -> tuple[bool, Any]:
+    node: Any = data
+    for p in dotted.split("."):
+        if not isinstance(node, dict) or p not in node:
+            return False, None
+        node = node[p]
+    return True, node
+
+
+def upgrade_config_dict(data: dict) -> dict:
+    """A copy of a raw config dict with keys of earlier releases moved to their new homes.
+
+    Old flat keys (``env.view_extent``) become nested ones (``env.view.extent``); an old
+    ``task.chaos: 0.5`` or ``task.cache: 1.0`` (mix weights, numbers) are told from the new
+    ``task.chaos`` and ``task.cache`` groups (mappings) by their type. A config of an old release that names no task preset gets the
+    one whose piece sets hold its ``env.piece_set``.
+    """
+    data = copy.deepcopy(data)
+    old_task = isinstance(data.get("task"), dict) and "preset" not in data["task"]
+    for old, new in RENAMED.items():
+        group, key = old.split(".")
+        node = data.get(group)
+        if not isinstance(node, dict) or key not in node:
+            continue
+        if isinstance(node[key], dict):
+            continue  # task.chaos and task.cache: already the new groups (the old keys held numbers)
+        value = node.pop(key)
+        found, existing = _get_dotted(data, new)
+        if found and existing != value:
+            raise ConfigError(f"both '{old}' (an old key) and '{new}' are set; keep '{new}'")
+        _set_dotted(data, new, value)
+    piece_set = _get_dotted(data, "env.piece_set")[1]
+    if (old_task or "task" not in data) and piece_set is not None:
+        for name, preset in PRESETS.items():
+            if piece_set == preset.piece_set or piece_set in preset.random_sets:
+                data.setdefault("task", {})["preset"] = name
+                break
+    return data
+
+
+def _merge_under(base: dict, top: dict) -> dict:
+    """``top`` laid over ``base``, recursively: ``top``'s values win."""
+    out = copy.deepcopy(base)
+    for k, v in top.items():
+        out[k] = _merge_under(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
 
 
 def _valid_keys(cls: type, prefix: str = "") -> list[str]:
@@ -181,6 +293,13 @@ def _coerce(value: Any, t: Any, where: str) -> Any:
         if not isinstance(value, list):
             raise ConfigError(f"{where}: expected a list, got {value!r}")
         return [_coerce(v, args[0] if args else Any, where) for v in value]
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        if args and args[-1] is not Ellipsis and len(value) != len(args):
+            raise ConfigError(f"{where}: expected {len(args)} values, got {value!r}")
+        types_ = [args[0]] * len(value) if args and args[-1] is Ellipsis else list(args) or [Any] * len(value)
+        return tuple(_coerce(v, t_, where) for v, t_ in zip(value, types_))
     if t is Any:
         return value
     if t is bool:
@@ -248,6 +367,9 @@ def load_config(path: str | Path | None, overrides: list[str] | None = None) -> 
             data = yaml.safe_load(p.read_text()) or {}
         except yaml.YAMLError as e:
             raise ConfigError(f"{p}: not valid YAML ({e})") from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"{p}: the top level must be a mapping, got {data!r}")
+    data = upgrade_config_dict(data)
     for ov in overrides or []:
         if "=" not in ov:
             raise ConfigError(f"override {ov!r}: expected key=value")
@@ -256,14 +378,37 @@ def load_config(path: str | Path | None, overrides: list[str] | None = None) -> 
             value = yaml.safe_load(raw)
         except yaml.YAMLError:
             value = raw
-        _set_dotted(data, key.strip(), value)
+        key = key.strip()
+        if key in RENAMED and not isinstance(value, dict):
+            key = RENAMED[key]
+        _set_dotted(data, key, value)
         where = f"{where} (with overrides)"
-    return _build(TrainConfig, data, where)
+    return config_from_dict(data, where)
+
+
+def config_from_dict(data: dict, where: str = "<dict>") -> TrainConfig:
+    """A :class:`TrainConfig` from a raw nested dict: old keys moved, the task preset laid underneath."""
+    data = upgrade_config_dict(data)
+    task = data.get("task") or {}
+    name = task.get("preset", TaskConfig.preset) if isinstance(task, dict) else TaskConfig.preset
+    try:
+        preset = get_preset(name)
+    except KeyError as e:
+        raise ConfigError(f"{where}: task.preset: {e.args[0]}") from None
+    return _build(TrainConfig, _merge_under(preset.config_overrides(), data), where)
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
 
 
 def config_to_dict(cfg: Any) -> dict:
-    """Plain-dict form of a config (for YAML and checkpoints)."""
-    d = dataclasses.asdict(cfg)
+    """Plain-dict form of a config (for YAML and checkpoints; tuples become lists)."""
+    d = _plain(dataclasses.asdict(cfg))
     if isinstance(cfg, TrainConfig):
         d["env"].pop("task", None)
     return d

@@ -8,6 +8,7 @@ view for contact sheets and recordings.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -16,25 +17,11 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from mrchaos.env import ROBOT_FAILURES, TangramEnv
-from mrchaos.metrics import strict_rela
-from mrchaos.task import TaskBatch
+from mrchaos.chaos import generate
+from mrchaos.env import ROBOT_FAILURES, EnvConfig, TangramEnv
+from mrchaos.task import MixConfig
 
-__all__ = ["EpisodeResults", "evaluate", "concat_results", "FixedTargets"]
-
-
-class FixedTargets:
-    """A task sampler that hands out given target poses in order (for evaluation)."""
-
-    def __init__(self, poses: np.ndarray, figure_index: np.ndarray | None = None, source: int = 2) -> None:
-        self.poses = np.asarray(poses, dtype=np.float64)
-        self.figure_index = figure_index if figure_index is not None else np.arange(len(self.poses))
-        self.source = source
-
-    def sample(self, n: int, rng: np.random.Generator) -> TaskBatch:
-        if n > len(self.poses):
-            raise ValueError(f"asked for {n} targets, have {len(self.poses)}")
-        return TaskBatch(self.poses[:n], np.full(n, self.source), self.figure_index[:n])
+__all__ = ["EpisodeResults", "evaluate", "evaluate_random", "concat_results", "policy_actor"]
 
 
 @dataclass
@@ -75,63 +62,57 @@ def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: b
     metres away right after it lands (the paper's Fig. 6C); the policy goes on from what
     it then sees. ``on_step(start, t, next)`` sees every step's output (for recordings).
     """
-    n, nw, p = len(targets), env.cfg.num_worlds, env.num_pieces
+    n, nw, p = len(targets), env.batch_size[0], env.num_pieces
     if perturb_after is not None and not 0 <= perturb_after < p:
         raise ValueError(f"perturb_after must be in [0, {p - 1}], got {perturb_after}")
     out = {k: [] for k in ("rela", "final", "iou", "strict", "cov", "sil", "view", "fail", "pert")}
     steps: list[dict] = []
-    saved = env.sampler
-    try:
-        for start in range(0, n, nw):
-            chunk = targets[start : start + nw]
-            m = len(chunk)
-            padded = np.concatenate([chunk, np.repeat(chunk[-1:], nw - m, 0)]) if m < nw else chunk
-            env.sampler = FixedTargets(padded)
-            td = env.reset()
-            cov = []
-            fail = {k: torch.zeros(nw, dtype=torch.int64) for k in ROBOT_FAILURES}
-            pert = {}
-            for t in range(p):
-                action = actor(env, td)
-                nxt = env.step(td.set("action", action))["next"]
-                cov.append(nxt["info", "step_coverage"][:, 0])
-                for k in ROBOT_FAILURES:
-                    fail[k] += nxt["info", k][:, 0].long()
-                if t == perturb_after:
-                    pert["final_before"] = nxt["info", "final"][:m, 0].numpy().copy()
-                    pert["coverage_before"] = nxt["info", "coverage"][:m, t].numpy().copy()
-                    env.perturb(np.arange(nw), perturb_distance)
-                    now = env.current()
-                    pert["final_after"] = now["info", "final"][:m, 0].numpy().copy()
-                    pert["coverage_after"] = now["info", "coverage"][:m, t].numpy().copy()
-                    nxt = nxt.update(now)
-                if on_step is not None:
-                    on_step(start, t, nxt)
-                if record_steps:
-                    steps.append({
-                        "episode": np.arange(start, start + m), "t": t,
-                        "observation": td["observation"][:m].numpy().copy(),
-                        "action": action[:m].numpy().copy(),
-                        "coverage": nxt["info", "coverage"][:m].numpy().copy(),
-                        "reward": nxt["info", "step_coverage"][:m, 0].numpy().copy(),
-                    })
-                td = TensorDict(observation=nxt["observation"], batch_size=env.batch_size)
-            cov = torch.stack(cov, 1)[:m]
-            out["cov"].append(cov.numpy())
-            out["rela"].append(cov.mean(1).numpy())
-            out["final"].append(nxt["info", "final"][:m, 0].numpy())
-            out["iou"].append(nxt["info", "iou"][:m, 0].numpy())
-            # Strict Rela from the final scene's piece-id image.
-            ids = env.worlds.raster(env.view).ids
-            out["strict"].append(strict_rela(ids, env.target_ids, env.piece_set.twins, p)[:m].numpy())
-            out["sil"].append(env.silhouette[:m].numpy().copy())
-            out["view"].append(nxt["observation"][:m, 1].numpy().copy())
-            out["fail"].append({k: v[:m].numpy() for k, v in fail.items()})
-            if pert:
-                pert["final_end"] = nxt["info", "final"][:m, 0].numpy().copy()
-                out["pert"].append(pert)
-    finally:
-        env.sampler = saved
+    for start in range(0, n, nw):
+        chunk = targets[start : start + nw]
+        m = len(chunk)
+        padded = np.concatenate([chunk, np.repeat(chunk[-1:], nw - m, 0)]) if m < nw else chunk
+        td = env.reset_to(padded)
+        silhouettes = td["observation"][:m, 0].numpy().copy()
+        cov = []
+        fail = {k: torch.zeros(nw, dtype=torch.int64) for k in ROBOT_FAILURES}
+        pert = {}
+        for t in range(p):
+            action = actor(env, td)
+            nxt = env.step(td.set("action", action))["next"]
+            cov.append(nxt["info", "step_coverage"][:, 0])
+            for k in ROBOT_FAILURES:
+                fail[k] += nxt["info", k][:, 0].long()
+            if t == perturb_after:
+                pert["final_before"] = nxt["info", "final"][:m, 0].numpy().copy()
+                pert["coverage_before"] = nxt["info", "coverage"][:m, t].numpy().copy()
+                env.perturb(np.arange(nw), perturb_distance)
+                now = env.current()
+                pert["final_after"] = now["info", "final"][:m, 0].numpy().copy()
+                pert["coverage_after"] = now["info", "coverage"][:m, t].numpy().copy()
+                nxt = nxt.update(now)
+            if on_step is not None:
+                on_step(start, t, nxt)
+            if record_steps:
+                steps.append({
+                    "episode": np.arange(start, start + m), "t": t,
+                    "observation": td["observation"][:m].numpy().copy(),
+                    "action": action[:m].numpy().copy(),
+                    "coverage": nxt["info", "coverage"][:m].numpy().copy(),
+                    "reward": nxt["info", "step_coverage"][:m, 0].numpy().copy(),
+                })
+            td = TensorDict(observation=nxt["observation"], batch_size=env.batch_size)
+        cov = torch.stack(cov, 1)[:m]
+        out["cov"].append(cov.numpy())
+        out["rela"].append(cov.mean(1).numpy())
+        out["final"].append(nxt["info", "final"][:m, 0].numpy())
+        out["iou"].append(nxt["info", "iou"][:m, 0].numpy())
+        out["strict"].append(nxt["info", "strict_rela"][:m, 0].numpy())
+        out["sil"].append(silhouettes)
+        out["view"].append(nxt["observation"][:m, 1].numpy().copy())
+        out["fail"].append({k: v[:m].numpy() for k, v in fail.items()})
+        if pert:
+            pert["final_end"] = nxt["info", "final"][:m, 0].numpy().copy()
+            out["pert"].append(pert)
     cat = {k: np.concatenate(v) for k, v in out.items() if k not in ("fail", "pert")}
 
     return EpisodeResults(
@@ -140,6 +121,21 @@ def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: b
         failures=_merge(out["fail"]), perturbation=_merge(out["pert"]),
         steps=steps if record_steps else None,
     )
+
+
+def evaluate_random(policy, env_cfg: EnvConfig, n: int = 200, seed: int = 2024) -> dict[str, float]:
+    """Greedy whole episodes of ``policy`` on ``n`` seeded Random (chaos) objects of ``env_cfg``'s task,
+    without the training noise; mean Rela, Final, IoU and strict Rela."""
+    noise = dataclasses.replace(env_cfg.noise, action_xy=0.0, action_theta=0.0, camera_jitter=0.0)
+    # Targets are given at reset: a chaos-only mix keeps the sampler from loading a cache.
+    task = dataclasses.replace(env_cfg.task, mix=MixConfig(chaos=1.0, cache=0.0, figures=0.0))
+    cfg = dataclasses.replace(env_cfg, num_worlds=min(n, 100), noise=noise, task=task)
+    env = TangramEnv(cfg, seed=seed)
+    targets = generate(env.piece_set, n, np.random.default_rng(seed), cfg.task.chaos, cfg.view)[0]
+    res = evaluate(env, targets, policy_actor(policy))
+    env.close()
+    return {"n": n, "rela": float(res.rela.mean()), "final": float(res.final.mean()),
+            "iou": float(res.iou.mean()), "strict_rela": float(res.strict_rela.mean())}
 
 
 def _merge(dicts: list[dict[str, np.ndarray] | None]) -> dict[str, np.ndarray] | None:

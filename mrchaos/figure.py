@@ -18,7 +18,7 @@ from mrchaos.geometry import convex_penetration, fit_pose, polygon_area, rigid_t
 from mrchaos.pieces import PieceSet
 from mrchaos.raster import View, rasterize
 
-__all__ = ["Figure", "FigureError", "figure_from_polygons", "FAMILIES"]
+__all__ = ["Figure", "FigureError", "FigureSet", "figure_from_polygons", "FAMILIES"]
 
 #: Evaluation families in the order the paper's Table I lists them.
 FAMILIES = ("Random", "H-Normal", "H-Hard", "H-Fiendish")
@@ -198,3 +198,13 @@ def figure_from_polygons(
         poses[i] = fit.pose
         mirrored[i] = fit.mirrored
     return Figure(fig_id, piece_set, poses, mirrored, name=name, family=family, source=source)
+
+
+@dataclass
+class FigureSet:
+    """Figures loaded from one source, plus the ones that failed validation (never silently dropped)."""
+
+    name: str
+    figures: list[Figure]
+    rejected: list[tuple[str, str]] = field(default_factory=list)  # (figure id, reason)
+    source: str = ""

@@ -14,47 +14,18 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from mrchaos.figure import FAMILIES, Figure, FigureError, figure_from_polygons
+from mrchaos.atomic import write_atomic
+from mrchaos.figure import FAMILIES, Figure, FigureError, FigureSet, figure_from_polygons
+from mrchaos.kilogram import load_kilogram
 from mrchaos.pieces import PieceSet, get_piece_set
 
-__all__ = ["FigureSet", "load_figures", "save_figures", "write_atomic"]
+__all__ = ["load_figures", "load_json", "save_figures", "figure_to_dict"]
 
 _UNITS = {"metre": 1.0, "meter": 1.0, "m": 1.0, "millimetre": 1e-3, "millimeter": 1e-3, "mm": 1e-3}
-
-
-@dataclass
-class FigureSet:
-    """Figures loaded from one source, plus the ones that failed validation (never silently dropped)."""
-
-    name: str
-    figures: list[Figure]
-    rejected: list[tuple[str, str]] = field(default_factory=list)  # (figure id, reason)
-    source: str = ""
-
-
-def write_atomic(path: str | os.PathLike, data: bytes | str) -> None:
-    """Write a file so that readers see either the old or the complete new content."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    umask = os.umask(0)
-    os.umask(umask)
-    try:
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes owner-only files; keep the usual mode
-        with os.fdopen(fd, "wb") as f:
-            f.write(data.encode() if isinstance(data, str) else data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _parse_figure(entry: object, index: int, piece_set: PieceSet, scale: float, source: str) -> Figure:
@@ -135,8 +106,6 @@ def load_figures(path: str | os.PathLike, validate: bool = True) -> FigureSet:
     """Load figures from an interchange JSON file, a KILOGRAM SVG file, or a folder of SVGs."""
     p = Path(path)
     if p.is_dir() or p.suffix.lower() == ".svg":
-        from mrchaos.kilogram import load_kilogram
-
         return load_kilogram(p, validate=validate)
     if p.suffix.lower() == ".json":
         return load_json(p, validate=validate)

@@ -1,7 +1,8 @@
-"""The extension tasks beyond tangram, and the goal configurations we authored for them.
+"""The task presets (tangram, cutlery, soda) and the goal configurations we authored for them.
 
 A :class:`TaskPreset` says what a task needs beyond its piece set: the camera view, the
-action grid and the slot rule (the same settings ``conf/<task>.yaml`` trains with). Goals
+action grid, the slot rule and the chaos workspace (``conf/<task>.yaml`` names the preset
+and inherits them), and what it is evaluated on. Tangram's goals are the built-in library. Goals
 are :class:`mrchaos.figure.Figure` objects written here by hand: table settings for
 cutlery, group shapes for soda cans. They are never used in training (the configs train
 on chaos objects only); the bench evaluates on them.
@@ -12,19 +13,19 @@ angle pi/2 points the head up (+y).
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from mrchaos.chaos import ChaosConfig
-from mrchaos.figure import Figure, FigureError
+from mrchaos.figure import FAMILIES, Figure, FigureError
+from mrchaos.library import builtin_figures
 from mrchaos.pieces import get_piece_set
 from mrchaos.raster import View
-from mrchaos.task import TaskConfig
 
-__all__ = ["TaskPreset", "TASKS", "cutlery_goals", "soda_goals", "task_goals"]
+__all__ = ["TaskPreset", "PRESETS", "get_preset", "cutlery_goals", "soda_goals"]
 
 UP, DOWN, LEFT, RIGHT = math.pi / 2, -math.pi / 2, math.pi, 0.0
 
@@ -91,48 +92,61 @@ def soda_goals(pitch: float = 0.070) -> list[Figure]:
 
 @dataclass(frozen=True)
 class TaskPreset:
-    """An extension task: its piece sets, view, grid and slot rule, and its authored goals.
+    """A task: its piece set, the env and chaos settings it needs, and what it is evaluated on.
+
+    The settings are overrides of the configs' own defaults (tangram needs none): a config
+    that names the preset (``task.preset``) gets them unless it sets a value itself.
 
     Attributes:
+        name: the task's name (``mrchaos-bench --task``, ``task.preset``).
         piece_set: the set it trains on.
-        view_extent, grid_half_range, grid_ntheta, twin_slots: env settings (as in its config).
-        goals: the authored goal configurations.
+        env: nested overrides of the env config (``{"view": {"extent": 0.40}}``).
+        chaos: overrides of the chaos generator's config (its workspace).
+        goals: the evaluation figures: the built-in library, or goals authored here.
         random_sets: piece sets of its Random family (soda draws every can count).
+        families: its bench families, Random first or last as Table I lists them.
+        authored: True when its goals form one "Authored" family; False when they are split
+            into H-Normal / H-Hard / H-Fiendish by the perimeter rule (the tangram's).
     """
 
+    name: str
     piece_set: str
-    view_extent: float
-    grid_half_range: float
-    grid_ntheta: int
-    twin_slots: str
-    workspace: float
-    goals: Callable[[], list[Figure]]
-    random_sets: tuple[str, ...]
+    env: dict = field(default_factory=dict)
+    chaos: dict = field(default_factory=dict)
+    goals: Callable[[], list[Figure]] = builtin_figures
+    random_sets: tuple[str, ...] = ()
+    families: tuple[str, ...] = ("Authored", "Random")
+    authored: bool = True
 
-    def chaos_config(self) -> ChaosConfig:
-        """The chaos generator's settings of the task: its workspace, inside its view."""
-        return TaskConfig(workspace=self.workspace).chaos_config(self.view_extent)
+    def config_overrides(self) -> dict:
+        """The preset as a nested config fragment, for the loader to lay under a config's own keys."""
+        return {"env": {"piece_set": self.piece_set, **copy.deepcopy(self.env)},
+                "task": {"chaos": dict(self.chaos)}}
 
-    def env_overrides(self) -> dict:
-        """EnvConfig fields of the task."""
-        return {"piece_set": self.piece_set, "view_extent": self.view_extent, "grid_half_range": self.grid_half_range,
-                "grid_ntheta": self.grid_ntheta, "twin_slots": self.twin_slots}
+    def goal_figures(self, view: View) -> list[Figure]:
+        """The validated goals (inside ``view``, no overlaps)."""
+        goals = self.goals()
+        for g in goals:
+            try:
+                g.validate(view)
+            except FigureError as e:
+                raise FigureError(f"{self.name} goal: {e}") from None
+        return goals
 
 
-TASKS: dict[str, TaskPreset] = {
-    "cutlery": TaskPreset("cutlery", 0.40, 0.16, 8, "shared", 0.14, cutlery_goals, ("cutlery",)),
-    "soda": TaskPreset("soda6", 0.44, 0.18, 1, "exclusive", 0.15, soda_goals,
-                       ("soda3", "soda4", "soda5", "soda6")),
+PRESETS: dict[str, TaskPreset] = {
+    "tangram": TaskPreset("tangram", "tangram7", random_sets=("tangram7",), families=FAMILIES, authored=False),
+    "cutlery": TaskPreset("cutlery", "cutlery", env={"view": {"extent": 0.40}, "grid": {"half_range": 0.16}},
+                          chaos={"workspace": 0.14}, goals=cutlery_goals, random_sets=("cutlery",)),
+    "soda": TaskPreset("soda", "soda6",
+                       env={"view": {"extent": 0.44}, "grid": {"half_range": 0.18, "ntheta": 1},
+                            "reward": {"twin_slots": "exclusive"}},
+                       chaos={"workspace": 0.15}, goals=soda_goals, random_sets=("soda3", "soda4", "soda5", "soda6")),
 }
 
 
-def task_goals(name: str) -> list[Figure]:
-    """The validated goals of task ``name`` (inside its view, no overlaps)."""
-    preset = TASKS[name]
-    goals = preset.goals()
-    for g in goals:
-        try:
-            g.validate(View(extent=preset.view_extent))
-        except FigureError as e:
-            raise FigureError(f"authored goal: {e}") from None
-    return goals
+def get_preset(name: str) -> TaskPreset:
+    """The preset called ``name``; a KeyError lists the known ones."""
+    if name not in PRESETS:
+        raise KeyError(f"unknown task {name!r}; tasks: {sorted(PRESETS)}")
+    return PRESETS[name]

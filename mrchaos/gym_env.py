@@ -32,7 +32,7 @@ class TangramGymEnv(gym.Env):
     def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None, **overrides: Any) -> None:
         cfg = replace(config or EnvConfig(), num_worlds=1, **overrides)
         self.env = TangramEnv(cfg, seed=0)
-        s = cfg.view_size
+        s = cfg.view.size
         self.observation_space = gym.spaces.Box(0, 255, (2, s, s), np.uint8)
         self.action_space = gym.spaces.MultiDiscrete(np.array(self.env.grid.nvec))
         self.render_mode = render_mode

@@ -16,8 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mrchaos.figure import Figure, FigureError
-from mrchaos.figure_io import FigureSet
+from mrchaos.figure import Figure, FigureError, FigureSet
 from mrchaos.geometry import fit_pose, polygon_area, rigid_transform
 from mrchaos.pieces import PieceSet, get_piece_set
 

@@ -12,7 +12,8 @@ from functools import lru_cache
 from importlib import resources
 
 from mrchaos.figure import Figure, FigureError
-from mrchaos.figure_io import FigureSet, load_json
+from mrchaos.figure import FigureSet
+from mrchaos.figure_io import load_json
 
 __all__ = ["builtin_figures", "library_path"]
 

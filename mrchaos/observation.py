@@ -24,25 +24,23 @@ class ObservationConfig:
     """How the current view is encoded.
 
     Attributes:
-        view_mode: "binary" (occupied = 255) or "levels" (height quantised to ``levels`` steps).
+        mode: "binary" (occupied = 255) or "levels" (height quantised to ``levels`` steps).
         levels: number of height levels in "levels" mode; level k means k piece
             thicknesses above the table, and the top level also takes anything higher.
-        thickness: height of one level (m).
     """
 
-    view_mode: str = "binary"
+    mode: str = "binary"
     levels: int = 3
-    thickness: float = 0.010
 
     def __post_init__(self) -> None:
-        if self.view_mode not in VIEW_MODES:
-            raise ValueError(f"view_mode must be one of {VIEW_MODES}, got {self.view_mode!r}")
+        if self.mode not in VIEW_MODES:
+            raise ValueError(f"env.observation.mode must be one of {VIEW_MODES}, got {self.mode!r}")
         if self.levels < 1:
             raise ValueError(f"levels must be >= 1, got {self.levels}")
 
     @property
     def needs_height(self) -> bool:
-        return self.view_mode == "levels"
+        return self.mode == "levels"
 
 
 def silhouette_image(target_ids: torch.Tensor) -> torch.Tensor:
@@ -50,10 +48,10 @@ def silhouette_image(target_ids: torch.Tensor) -> torch.Tensor:
     return (target_ids >= 0).to(torch.uint8) * 255
 
 
-def view_image(raster: Raster, cfg: ObservationConfig) -> torch.Tensor:
-    """(B, H, W) uint8 current view from a raster of the placed pieces."""
+def view_image(raster: Raster, cfg: ObservationConfig, thickness: float = 0.010) -> torch.Tensor:
+    """(B, H, W) uint8 current view from a raster of the placed pieces; one level is ``thickness`` metres."""
     occ = raster.ids >= 0
-    if cfg.view_mode == "binary":
+    if cfg.mode == "binary":
         return occ.to(torch.uint8) * 255
-    level = torch.ceil(raster.height / cfg.thickness - 0.25).clamp(1, cfg.levels)
+    level = torch.ceil(raster.height / thickness - 0.25).clamp(1, cfg.levels)
     return torch.where(occ, (level * (255.0 / cfg.levels)).round(), torch.zeros(())).to(torch.uint8)

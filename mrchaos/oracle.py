@@ -17,14 +17,12 @@ __all__ = ["oracle_poses", "oracle_actions"]
 
 def oracle_poses(env: TangramEnv) -> np.ndarray:
     """(N, 3) exact target pose of each world's next piece (its own slot)."""
-    n = env.cfg.num_worlds
-    piece = np.minimum(env.next_piece, env.num_pieces - 1)
-    return env.target[np.arange(n), piece]
+    return env.oracle_targets().pose
 
 
 def oracle_actions(env: TangramEnv) -> torch.Tensor:
     """(N, 3) grid action nearest to each world's next target pose (theta modulo the piece's symmetry)."""
-    piece = np.minimum(env.next_piece, env.num_pieces - 1)
-    period = np.array([p.symmetry_period for p in env.piece_set.pieces])[piece]
-    origin = env.piece_set.to_origin(piece, oracle_poses(env))
+    answer = env.oracle_targets()
+    period = np.array([p.symmetry_period for p in env.piece_set.pieces])[answer.piece]
+    origin = env.piece_set.to_origin(answer.piece, answer.pose)
     return torch.as_tensor(env.grid.nearest(origin, period))

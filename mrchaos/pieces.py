@@ -139,9 +139,10 @@ class PieceSet:
     name: str
     pieces: tuple[Piece, ...]
     twins: tuple[tuple[int, ...], ...] = field(default=())
-    #: Piece sets of one family share policies: a checkpoint trained on one member acts on
+    #: Piece sets of one kind share policies: a checkpoint trained on one member acts on
     #: any other (e.g. soda3 … soda6, whose pieces are all the same can). Default: the name.
-    family: str = ""
+    #: ("Family" is kept for the evaluation families, H-Normal and the rest.)
+    kind: str = ""
 
     def __post_init__(self) -> None:
         names = [p.name for p in self.pieces]
@@ -157,8 +158,8 @@ class PieceSet:
             if len(shapes) != 1:
                 raise ValueError(f"piece set {self.name!r}: twins {group} differ in shape")
 
-        if not self.family:
-            object.__setattr__(self, "family", self.name)
+        if not self.kind:
+            object.__setattr__(self, "kind", self.name)
 
     def __len__(self) -> int:
         return len(self.pieces)
@@ -343,7 +344,7 @@ def soda(n: int = 6) -> PieceSet:
         raise ValueError(f"soda: 1 to 16 cans, got {n}")
     disc = _ellipse(0.0, CAN_DIAMETER / 2, CAN_DIAMETER / 2)
     cans = tuple(Piece(f"can_{i + 1}", disc, CAN_HEIGHT, symmetry=0) for i in range(n))
-    return PieceSet(f"soda{n}", cans, twins=(tuple(range(n)),), family="soda")
+    return PieceSet(f"soda{n}", cans, twins=(tuple(range(n)),), kind="soda")
 
 
 _REGISTRY: dict[str, Callable[[], PieceSet]] = {

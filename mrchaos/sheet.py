@@ -101,7 +101,7 @@ def pair_sheet(
 
 def save_png(img: Image.Image, path: str | os.PathLike) -> None:
     """Save a PNG atomically."""
-    from mrchaos.figure_io import write_atomic
+    from mrchaos.atomic import write_atomic
 
     buf = io.BytesIO()
     img.save(buf, format="PNG")

@@ -1,4 +1,4 @@
-"""The task sampler: where each episode's target comes from.
+"""The task's config and its target sampler: where each episode's target comes from.
 
 Targets are chaos objects (drawn fresh, or from a pre-generated cache) or
 figures from figure sets, in a mix set by config. Everything is drawn from the
@@ -15,9 +15,12 @@ import numpy as np
 
 from mrchaos.chaos import ChaosCache, ChaosConfig, generate
 from mrchaos.figure import Figure
+from mrchaos.figure_io import load_figures
+from mrchaos.library import builtin_figures
 from mrchaos.pieces import PieceSet
+from mrchaos.raster import View
 
-__all__ = ["TaskConfig", "TaskBatch", "TaskSampler", "SOURCES"]
+__all__ = ["TaskConfig", "MixConfig", "CacheConfig", "TargetBatch", "TargetSampler", "SOURCES"]
 
 log = logging.getLogger(__name__)
 
@@ -26,45 +29,47 @@ SOURCES = ("chaos", "cache", "figures")
 
 
 @dataclass
-class TaskConfig:
-    """Where targets come from.
-
-    Attributes:
-        chaos: weight of freshly generated chaos objects.
-        cache: weight of chaos objects drawn from the cache.
-        figures: weight of figures from ``figure_sets``.
-        chaos_mode: "scatter", "attract" or "mix" (fresh objects and a built cache).
-        attract_fraction: share of attract objects under "mix".
-        angle_step: rotation grid of chaos objects (rad); 0 for continuous.
-        workspace: chaos objects' piece centroids are drawn in [-workspace, workspace]^2 (m)
-            before the attraction; the camera view (``env.view_extent``) bounds the rest.
-        cache_path: an ``.npz`` cache to load; built and saved there if missing.
-        cache_size: objects to generate when the cache has to be built.
-        cache_seed: seed of a built cache.
-        figure_sets: figure files or folders; "builtin" is the shipped library.
-    """
+class MixConfig:
+    """Weights of the target sources (normalised): fresh chaos objects, the chaos cache, figures."""
 
     chaos: float = 0.0
     cache: float = 1.0
     figures: float = 0.0
-    chaos_mode: str = "mix"
-    attract_fraction: float = 0.5
-    angle_step: float = 0.7853981633974483
-    workspace: float = 0.10
-    cache_path: str | None = None
-    cache_size: int = 2048
-    cache_seed: int = 12345
-    figure_sets: list[str] = field(default_factory=lambda: ["builtin"])
-
-    def chaos_config(self, view_extent: float = 0.26) -> ChaosConfig:
-        """The chaos generator's settings for a camera view ``view_extent`` metres wide: every
-        object lies inside the view, 5 mm from its edges."""
-        return ChaosConfig(mode=self.chaos_mode, attract_fraction=self.attract_fraction, angle_step=self.angle_step,
-                           workspace=self.workspace, view_half=view_extent / 2 - 0.005)
 
 
 @dataclass
-class TaskBatch:
+class CacheConfig:
+    """A pre-generated chaos cache: an ``.npz`` at ``path`` (built and saved there if missing;
+    relative paths are resolved against the working directory), ``size`` objects, ``seed``."""
+
+    path: str | None = None
+    size: int = 2048
+    seed: int = 12345
+
+
+@dataclass
+class TaskConfig:
+    """The task: which preset (piece set, view, grid, goals) and where its training targets come from.
+
+    Attributes:
+        preset: a task of :data:`mrchaos.presets.PRESETS` (tangram, cutlery, soda); it sets the
+            env's piece set, view, grid and slot rule, and the chaos workspace, unless the
+            config sets them itself.
+        mix: the weights of the target sources.
+        chaos: how chaos objects are drawn (the camera view bounds them).
+        cache: the chaos cache.
+        figure_sets: figure files or folders for the ``figures`` source; "builtin" is the shipped library.
+    """
+
+    preset: str = "tangram"
+    mix: MixConfig = field(default_factory=MixConfig)
+    chaos: ChaosConfig = field(default_factory=ChaosConfig)
+    cache: CacheConfig = field(default_factory=CacheConfig)
+    figure_sets: list[str] = field(default_factory=lambda: ["builtin"])
+
+
+@dataclass
+class TargetBatch:
     """Targets for n worlds: poses (n, P, 3), source index (n,), and figure index (n,) or -1."""
 
     poses: np.ndarray
@@ -72,22 +77,23 @@ class TaskBatch:
     figure: np.ndarray
 
 
-class TaskSampler:
+class TargetSampler:
     """Draws target assemblies for resets.
 
     Args:
         piece_set: the pieces.
-        cfg: the mix and its sources.
+        cfg: the task: its mix and sources.
         figures: figures to use instead of loading ``cfg.figure_sets`` (optional).
-        view_extent: width of the camera view (m); chaos objects lie inside it.
+        view: the camera view; chaos objects lie inside it.
     """
 
     def __init__(self, piece_set: PieceSet, cfg: TaskConfig = TaskConfig(), figures: list[Figure] | None = None,
-                 view_extent: float = 0.26):
+                 view: View = View()):
         self.piece_set = piece_set
         self.cfg = cfg
-        self.view_extent = view_extent
-        w = np.array([cfg.chaos, cfg.cache, cfg.figures], dtype=np.float64)
+        self.view = view
+        mix = cfg.mix
+        w = np.array([mix.chaos, mix.cache, mix.figures], dtype=np.float64)
         if (w < 0).any() or w.sum() <= 0:
             raise ValueError(f"task mix weights must be >= 0 with a positive sum, got chaos/cache/figures = {w}")
         self.weights = w / w.sum()
@@ -103,26 +109,23 @@ class TaskSampler:
         self._figure_poses = np.stack([f.poses for f in self.figures]) if self.figures else None
 
     def _load_or_build_cache(self) -> ChaosCache:
-        path = self.cfg.cache_path
+        path = self.cfg.cache.path
         if path and Path(path).exists():
             cache = ChaosCache.load(path, self.piece_set)
             # A cache built for a wider view would hand the policy pieces it cannot see.
             reach = np.abs(self.piece_set.footprints(cache.poses)).max()
-            half = self.view_extent / 2
+            half = self.view.extent / 2
             if reach > half:
                 raise ValueError(f"{path}: chaos cache objects reach {reach:.3f} m from the centre, outside this "
                                  f"view's ±{half:.3f} m; delete it or set task.cache_path to rebuild")
             return cache
-        log.info("building a chaos cache of %d objects", self.cfg.cache_size)
-        cache = ChaosCache.build(self.piece_set, self.cfg.cache_size, self.cfg.cache_seed, self.cfg.chaos_config(self.view_extent))
+        log.info("building a chaos cache of %d objects", self.cfg.cache.size)
+        cache = ChaosCache.build(self.piece_set, self.cfg.cache.size, self.cfg.cache.seed, self.cfg.chaos, self.view)
         if path:
             cache.save(path)
         return cache
 
     def _load_figures(self) -> list[Figure]:
-        from mrchaos.figure_io import load_figures
-        from mrchaos.library import builtin_figures
-
         out: list[Figure] = []
         for src in self.cfg.figure_sets:
             if src == "builtin":
@@ -134,14 +137,14 @@ class TaskSampler:
                 out.extend(f for f in fs.figures if f.piece_set.name == self.piece_set.name)
         return out
 
-    def sample(self, n: int, rng: np.random.Generator) -> TaskBatch:
+    def sample(self, n: int, rng: np.random.Generator) -> TargetBatch:
         """Targets for n worlds."""
         source = rng.choice(3, size=n, p=self.weights)
         poses = np.zeros((n, len(self.piece_set), 3))
         figure = np.full(n, -1, dtype=np.int64)
         idx = np.flatnonzero(source == 0)
         if len(idx):
-            poses[idx] = generate(self.piece_set, len(idx), rng, self.cfg.chaos_config(self.view_extent))[0]
+            poses[idx] = generate(self.piece_set, len(idx), rng, self.cfg.chaos, self.view)[0]
         idx = np.flatnonzero(source == 1)
         if len(idx):
             poses[idx] = self.cache.sample(len(idx), rng)
@@ -149,4 +152,4 @@ class TaskSampler:
         if len(idx):
             figure[idx] = rng.integers(0, len(self.figures), len(idx))
             poses[idx] = self._figure_poses[figure[idx]]
-        return TaskBatch(poses, source, figure)
+        return TargetBatch(poses, source, figure)

@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 import yaml
 from tensordict import TensorDict
@@ -28,20 +27,23 @@ from torchrl.envs import TransformedEnv
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from mrchaos.checkpoint import CheckpointError, check_compatible, load_checkpoint, save_checkpoint
+from mrchaos.atomic import write_atomic
+from mrchaos.checkpoint import CheckpointError, check_header, load_checkpoint, policy_header, save_checkpoint
 from mrchaos.config import TrainConfig, config_to_dict, load_config
 from mrchaos.curriculum import GLOBAL, LOCAL, CurriculumTransform
 from mrchaos.env import TangramEnv
-from mrchaos.figure_io import write_atomic
+from mrchaos.evaluate import evaluate_random
 from mrchaos.policy import build_actor_critic
+from mrchaos.rewards import REWARD_TERMS
 
-__all__ = ["Trainer", "make_env", "evaluate_random"]
+__all__ = ["Trainer", "make_env", "resume_config"]
 
 log = logging.getLogger("mrchaos.train")
 
+LOSS_KEYS = ("loss_objective", "loss_critic", "loss_entropy", "entropy")
 CSV_FIELDS = [
     "iteration", "frames", "episodes", "minutes", "sps", "stage", "reward", "rela", "final",
-    "loss_objective", "loss_critic", "loss_entropy", "entropy", "collect_s", "update_s",
+    *LOSS_KEYS, "collect_s", "update_s", *(f"term_{k}" for k in REWARD_TERMS),
 ]
 
 
@@ -53,23 +55,6 @@ def make_env(cfg: TrainConfig, seed: int, stage: torch.Tensor | None = None) -> 
         cfg.curriculum.min_iters, seed=seed + 1, stage=stage,
     )
     return TransformedEnv(base, cur)
-
-
-def evaluate_random(policy, cfg: TrainConfig, n: int = 200, seed: int = 2024) -> dict[str, float]:
-    """Greedy whole-episode evaluation on ``n`` seeded Random (chaos) objects."""
-    import dataclasses
-
-    from mrchaos.chaos import generate
-    from mrchaos.evaluate import evaluate, policy_actor
-
-    task = dataclasses.replace(cfg.task, chaos=1.0, cache=0.0, figures=0.0)
-    env_cfg = dataclasses.replace(cfg.env_config(), task=task, num_worlds=min(n, 100), action_noise_xy=0.0,
-                                  action_noise_theta=0.0, camera_jitter=0.0)
-    env = TangramEnv(env_cfg, seed=seed)
-    targets = generate(env.piece_set, n, np.random.default_rng(seed), cfg.task.chaos_config(env_cfg.view_extent))[0]
-    res = evaluate(env, targets, policy_actor(policy))
-    return {"n": n, "rela": float(res.rela.mean()), "final": float(res.final.mean()),
-            "iou": float(res.iou.mean()), "strict_rela": float(res.strict_rela.mean())}
 
 
 class Trainer:
@@ -165,26 +150,16 @@ class Trainer:
 
     def state(self) -> dict[str, Any]:
         """Everything a resume needs (tensors and builtin containers only)."""
-        base = self.base
         return {
-            "kind": "mrchaos-policy",
+            **policy_header(self.base, config_to_dict(self.cfg.policy)),
             "config": config_to_dict(self.cfg),
-            "policy": config_to_dict(self.cfg.policy),
-            "piece_set": base.piece_set.name,
-            "obs_shape": [2, base.view.size, base.view.size],
-            "grid": list(base.grid.nvec),
-            "view_extent": base.view.extent,
             "model": self.actor_critic.state_dict(),
             "optim": self.optim.state_dict(),
             "curriculum": {
                 "stage": int(self.curriculum.stage), "switched_at": int(self.curriculum.switched_at),
                 **self.curriculum.extra_state(),
             },
-            "rng": {
-                "torch": torch.get_rng_state(),
-                "env": base.rng.get_state(),
-                "env_np": base._np_rng.bit_generator.state,
-            },
+            "rng": {"torch": torch.get_rng_state(), "env": self.base.rng_state()},
             "iteration": self.iteration,
             "frames": self.frames,
             "episodes": self.episodes,
@@ -193,8 +168,7 @@ class Trainer:
 
     def _restore(self, path: Path) -> None:
         st = load_checkpoint(path)
-        check_compatible(st, path, self.base.piece_set.name, [2, self.base.view.size, self.base.view.size],
-                         self.base.grid.nvec)
+        check_header(st, path, self.base)
         try:
             self.actor_critic.load_state_dict(st["model"])
             self.optim.load_state_dict(st["optim"])
@@ -205,8 +179,10 @@ class Trainer:
         self.curriculum.switched_at.fill_(cur["switched_at"])
         self.curriculum.load_extra_state(cur)
         torch.set_rng_state(st["rng"]["torch"])
-        self.base.rng.set_state(st["rng"]["env"])
-        self.base._np_rng.bit_generator.state = st["rng"]["env_np"]
+        env_rng = st["rng"]["env"]
+        if not isinstance(env_rng, dict):  # checkpoints before the env's rng_state(): two entries
+            env_rng = {"torch": env_rng, "numpy": st["rng"]["env_np"]}
+        self.base.set_rng_state(env_rng)
         self.iteration, self.frames = st["iteration"], st["frames"]
         self.episodes, self.minutes = st["episodes"], st["minutes"]
         log.info("resumed %s at iteration %d, %d frames, stage %d", path, self.iteration, self.frames, cur["stage"])
@@ -228,12 +204,15 @@ class Trainer:
 
     # ------------------------------------------------------------------ logging
     def _truncate_metrics(self) -> None:
-        """Drop rows of iterations after the checkpoint (a killed run redoes them)."""
+        """Drop rows of iterations after the checkpoint (a killed run redoes them); rewrite an
+        older release's header with today's columns."""
         with open(self.csv_path, newline="") as f:
-            rows = list(csv.DictReader(f))
+            reader = csv.DictReader(f)
+            rows = list(reader)
+            header = reader.fieldnames
         keep = [r for r in rows if int(r["iteration"]) <= self.iteration]
-        if len(keep) < len(rows):
-            lines = [",".join(CSV_FIELDS)] + [",".join(str(r.get(k, "")) for k in CSV_FIELDS) for r in keep]
+        if len(keep) < len(rows) or header != CSV_FIELDS:
+            lines = [",".join(CSV_FIELDS)] + [",".join(str(r.get(k) or "") for k in CSV_FIELDS) for r in keep]
             write_atomic(self.csv_path, "\n".join(lines) + "\n")
 
     def _log(self, row: dict[str, Any], data: TensorDict) -> None:
@@ -244,8 +223,7 @@ class Trainer:
                 w.writeheader()
             w.writerow({k: row.get(k, "") for k in CSV_FIELDS})
         if self.rerun is not None:
-            for k in ("reward", "rela", "final", "loss_objective", "loss_critic", "loss_entropy", "entropy", "stage",
-                      "sps"):
+            for k in ("reward", "rela", "final", *LOSS_KEYS, "stage", "sps", *(f"term_{t}" for t in REWARD_TERMS)):
                 v = row.get(k)
                 if v is not None and not (isinstance(v, float) and math.isnan(v)):
                     self.rerun.log_scalar(k, v, step=self.iteration)
@@ -259,17 +237,69 @@ class Trainer:
                     self.base.view.extent,
                 )
 
+    # ------------------------------------------------------------------ algorithm
+    def update(self, data: TensorDict) -> dict[str, float]:
+        """PPO on one batch: advantages once, then epochs of minibatches; mean losses."""
+        cfg = self.cfg
+        with torch.no_grad():
+            self.advantage(data)
+        self.buffer.empty()
+        self.buffer.extend(data.reshape(-1))
+        sums = dict.fromkeys(LOSS_KEYS, 0.0)
+        n_mb = max(1, cfg.collector.frames_per_batch // cfg.loss.minibatch_size)
+        for _ in range(cfg.loss.epochs):
+            for _ in range(n_mb):
+                batch = self.buffer.sample()
+                out = self.loss(batch)
+                total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+                self.optim.zero_grad(set_to_none=True)
+                total.backward()
+                torch.nn.utils.clip_grad_norm_(self.loss.parameters(), cfg.optim.max_grad_norm)
+                self.optim.step()
+                for k in sums:
+                    sums[k] += float(out[k].detach()) / (cfg.loss.epochs * n_mb)
+        self.collector.update_policy_weights_()
+        return sums
+
+    def curriculum_step(self, reward: float) -> str | None:
+        """Switch to stage 2 when stage-1 reward plateaus or the time cap passes; the reason, if it switched."""
+        cap = self.cfg.curriculum.max_minutes
+        if int(self.curriculum.stage) != LOCAL:
+            return None
+        if self.curriculum.update(self.iteration, reward):
+            why = "stage-1 reward plateaued"
+        elif 0 < cap <= self.minutes and self.curriculum.force_switch(self.iteration):
+            why = f"time cap of {cap:g} min"
+        else:
+            return None
+        self.stage.fill_(int(self.curriculum.stage))
+        return why
+
+    @staticmethod
+    def batch_metrics(data: TensorDict) -> dict[str, float | int]:
+        """What a collected batch says: episodes ended (``ended``), mean reward, Rela of its steps, Final of its
+        ended episodes, and the mean of every reward term over the steps that placed a piece."""
+        done = data["next", "done"][..., 0]
+        acted = data["next", "info", "piece"][..., 0] >= 0
+        step_cov = data["next", "info", "step_coverage"][..., 0][acted]
+        finals = data["next", "info", "final"][..., 0][done]
+        terms = data["next", "info", "reward_terms"]
+        return {
+            "ended": int(done.sum()),
+            "reward": float(data["next", "reward"].mean()),
+            "rela": float(step_cov.mean()) if len(step_cov) else float("nan"),
+            "final": float(finals.mean()) if len(finals) else float("nan"),
+            **{f"term_{k}": float(terms[k][..., 0][acted].mean()) if acted.any() else float("nan")
+               for k in terms.keys()},
+        }
+
     # ------------------------------------------------------------------ loop
     def run(self) -> dict[str, Any]:
+        """Collect, update, step the curriculum, log and checkpoint until a stop rule fires."""
         cfg = self.cfg
         write_atomic(self.run_dir / "config.yaml", yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
         old_handlers = {s: signal.signal(s, self._request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
-        bar = None
-        if cfg.logger.progress:
-            from tqdm import tqdm
-
-            total = cfg.collector.total_frames if cfg.collector.total_frames > 0 else None
-            bar = tqdm(total=total, initial=self.frames, unit="f", dynamic_ncols=True)
+        bar = self._progress_bar()
         started = time.perf_counter() - self.minutes * 60
         t_collect = time.perf_counter()
         try:
@@ -278,65 +308,30 @@ class Trainer:
                 t_update = time.perf_counter()
                 self.iteration += 1
                 self.frames += data.numel()
-                done = data["next", "done"][..., 0]
-                self.episodes += int(done.sum())
-                acted = data["next", "info", "piece"][..., 0] >= 0
-                step_cov = data["next", "info", "step_coverage"][..., 0][acted]
-                finals = data["next", "info", "final"][..., 0][done]
-                reward = float(data["next", "reward"].mean())
-
-                # PPO: advantages once per batch, then epochs of minibatches.
-                with torch.no_grad():
-                    self.advantage(data)
-                self.buffer.empty()
-                self.buffer.extend(data.reshape(-1))
-                sums = {"loss_objective": 0.0, "loss_critic": 0.0, "loss_entropy": 0.0, "entropy": 0.0}
-                n_mb = max(1, cfg.collector.frames_per_batch // cfg.loss.minibatch_size)
-                for _ in range(cfg.loss.epochs):
-                    for _ in range(n_mb):
-                        batch = self.buffer.sample()
-                        out = self.loss(batch)
-                        total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
-                        self.optim.zero_grad(set_to_none=True)
-                        total.backward()
-                        torch.nn.utils.clip_grad_norm_(self.loss.parameters(), cfg.optim.max_grad_norm)
-                        self.optim.step()
-                        for k in sums:
-                            sums[k] += float(out[k].detach()) / (cfg.loss.epochs * n_mb)
-                self.collector.update_policy_weights_()
-
+                seen = self.batch_metrics(data)
+                self.episodes += seen["ended"]
                 stage = int(self.curriculum.stage)
+
+                losses = self.update(data)
+
                 self.minutes = (time.perf_counter() - started) / 60
-                cap = cfg.curriculum.max_minutes
-                plateau = stage == LOCAL and self.curriculum.update(self.iteration, reward)
-                capped = not plateau and stage == LOCAL and 0 < cap <= self.minutes and \
-                    self.curriculum.force_switch(self.iteration)
-                if plateau or capped:
-                    self.stage.fill_(int(self.curriculum.stage))
-                    why = "stage-1 reward plateaued" if plateau else f"time cap of {cap:g} min"
-                    msg = f"curriculum: stage 1 -> 2 at iteration {self.iteration} ({self.frames} frames; {why})"
-                    log.info(msg)
-                    if self.rerun is not None:
-                        self.rerun.log_text("events", msg, step=self.iteration)
+                why = self.curriculum_step(seen["reward"])
+                if why is not None:
+                    self._event(f"curriculum: stage 1 -> 2 at iteration {self.iteration} ({self.frames} frames; {why})")
                 update_s = time.perf_counter() - t_update
                 row = {
                     "iteration": self.iteration, "frames": self.frames, "episodes": self.episodes,
-                    "minutes": round(self.minutes, 3), "sps": data.numel() / (collect_s + update_s),
-                    "stage": stage, "reward": reward,
-                    "rela": float(step_cov.mean()) if len(step_cov) else float("nan"),
-                    "final": float(finals.mean()) if len(finals) else float("nan"),
-                    "collect_s": round(collect_s, 3), "update_s": round(update_s, 3), **sums,
+                    "minutes": round(self.minutes, 3), "sps": data.numel() / (collect_s + update_s), "stage": stage,
+                    "collect_s": round(collect_s, 3), "update_s": round(update_s, 3), **seen, **losses,
                 }
                 self._log(row, data)
                 if bar is not None:
                     bar.update(data.numel())
-                    bar.set_postfix(sps=f"{row['sps']:.0f}", reward=f"{reward:.3f}", rela=f"{row['rela']:.3f}",
+                    bar.set_postfix(sps=f"{row['sps']:.0f}", reward=f"{row['reward']:.3f}", rela=f"{row['rela']:.3f}",
                                     stage=stage, refresh=False)
                 if self.iteration % max(1, cfg.checkpoint.every) == 0:
                     self.save()
-                over_frames = 0 < cfg.collector.total_frames <= self.frames
-                over_time = 0 < cfg.collector.max_minutes <= self.minutes
-                if over_frames or over_time or self.stop_requested:
+                if self._should_stop():
                     break
                 t_collect = time.perf_counter()
         finally:
@@ -350,9 +345,27 @@ class Trainer:
                 self.rerun.close()
         return {"iteration": self.iteration, "frames": self.frames, "stopped": self.stop_requested}
 
+    def _should_stop(self) -> bool:
+        over_frames = 0 < self.cfg.collector.total_frames <= self.frames
+        over_time = 0 < self.cfg.collector.max_minutes <= self.minutes
+        return over_frames or over_time or self.stop_requested
+
+    def _progress_bar(self):
+        if not self.cfg.logger.progress:
+            return None
+        from tqdm import tqdm
+
+        total = self.cfg.collector.total_frames if self.cfg.collector.total_frames > 0 else None
+        return tqdm(total=total, initial=self.frames, unit="f", dynamic_ncols=True)
+
+    def _event(self, msg: str) -> None:
+        log.info(msg)
+        if self.rerun is not None:
+            self.rerun.log_text("events", msg, step=self.iteration)
+
     def finish(self, n_eval: int = 200) -> dict[str, float]:
         """Greedy evaluation on Random objects, written to ``eval.json``."""
-        res = evaluate_random(self.policy, self.cfg, n=n_eval)
+        res = evaluate_random(self.policy, self.cfg.env_config(), n=n_eval)
         write_atomic(self.run_dir / "eval.json", json.dumps(res, indent=1) + "\n")
         return res
 

@@ -8,13 +8,13 @@ from tensordict import TensorDict
 from mrchaos.camera import MujocoCamera
 from mrchaos.env import EnvConfig, TangramEnv
 from mrchaos.raster import rasterize
-from mrchaos.task import TaskConfig
+from mrchaos.task import CacheConfig, TaskConfig
 
 pytestmark = pytest.mark.usefixtures("rendering")
 
 
 def _scenes(n_worlds: int, seed: int) -> TangramEnv:
-    env = TangramEnv(EnvConfig(num_worlds=n_worlds, task=TaskConfig(cache_size=64)), seed=seed)
+    env = TangramEnv(EnvConfig(num_worlds=n_worlds, task=TaskConfig(cache=CacheConfig(size=64))), seed=seed)
     env.reset()
     g = torch.Generator().manual_seed(seed)
     steps = int(torch.randint(1, 7, (1,), generator=g))
@@ -47,7 +47,7 @@ def test_rasteriser_and_mujoco_camera_agree_on_50_scenes():
 
 
 def test_env_on_the_mujoco_camera():
-    env = TangramEnv(EnvConfig(num_worlds=2, camera="mujoco", task=TaskConfig(cache_size=16)), seed=0)
+    env = TangramEnv(EnvConfig(num_worlds=2, camera="mujoco", task=TaskConfig(cache=CacheConfig(size=16))), seed=0)
     td = env.reset()
     out = env.step(td.set("action", env.action_spec.rand()))["next"]
     assert out["observation"].shape == (2, 2, 120, 120)

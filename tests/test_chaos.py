@@ -76,11 +76,12 @@ def test_cache_round_trip_and_errors(tmp_path):
 
 
 def test_a_cache_built_for_a_wider_view_is_refused(tmp_path):
-    from mrchaos.task import TaskConfig, TaskSampler
+    from mrchaos.raster import View
+    from mrchaos.task import CacheConfig, MixConfig, TargetSampler, TaskConfig
 
     path = tmp_path / "wide.npz"
-    ChaosCache.build(PS, 16, seed=2, cfg=TaskConfig().chaos_config(0.26)).save(path)
-    cfg = TaskConfig(chaos=0.0, cache=1.0, cache_path=str(path))
-    assert len(TaskSampler(PS, cfg, view_extent=0.26).cache) == 16
+    ChaosCache.build(PS, 16, seed=2, view=View(0.26)).save(path)
+    cfg = TaskConfig(mix=MixConfig(chaos=0.0, cache=1.0), cache=CacheConfig(path=str(path)))
+    assert len(TargetSampler(PS, cfg, view=View(0.26)).cache) == 16
     with pytest.raises(ValueError, match="wide.npz: chaos cache objects reach"):
-        TaskSampler(PS, cfg, view_extent=0.16)
+        TargetSampler(PS, cfg, view=View(0.16))

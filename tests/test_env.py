@@ -6,10 +6,12 @@ from torchrl.envs.utils import check_env_specs
 
 from mrchaos.env import EnvConfig, TangramEnv
 from mrchaos.oracle import oracle_actions, oracle_poses
-from mrchaos.evaluate import FixedTargets
-from mrchaos.task import TaskConfig
+from mrchaos.env import NoiseConfig
+from mrchaos.observation import ObservationConfig
+from mrchaos.rewards import RewardConfig
+from mrchaos.task import CacheConfig, TaskConfig
 
-SMALL_TASK = TaskConfig(cache_size=64)
+SMALL_TASK = TaskConfig(cache=CacheConfig(size=64))
 
 
 def make(n, seed=0, **kw):
@@ -72,15 +74,16 @@ def test_partial_reset_leaves_other_rows_bit_identical():
     for _ in range(3):
         env.step(TensorDict(action=random_actions(env, g), batch_size=[6]))
     before = env.step(TensorDict(action=random_actions(env, g), batch_size=[6]))["next"]
-    qpos, target = env.worlds.qpos.copy(), env.target.copy()
+    qpos, target = env.worlds.qpos.copy(), env.oracle_targets().pose
     mask = torch.tensor([True, False, True, False, False, False])[:, None]
     # As a collector does: the current step's outputs, with the rows to reset marked.
     after = env.reset(before.clone().set("_reset", mask))
     keep = ~mask[:, 0]
     assert torch.equal(after["observation"][keep], before["observation"][keep])
     assert np.array_equal(env.worlds.qpos[keep.numpy()], qpos[keep.numpy()])
-    assert np.array_equal(env.target[keep.numpy()], target[keep.numpy()])
-    assert not np.array_equal(env.target[~keep.numpy()], target[~keep.numpy()])
+    now = env.oracle_targets().pose  # the next piece's target: piece 4 kept, piece 0 of new targets
+    assert np.array_equal(now[keep.numpy()], target[keep.numpy()])
+    assert not np.array_equal(now[~keep.numpy()], target[~keep.numpy()])
     assert (env.next_piece[~keep.numpy()] == 0).all() and (env.next_piece[keep.numpy()] == 4).all()
 
 
@@ -97,8 +100,8 @@ def test_bad_actions_are_rejected():
         env.step(TensorDict(action=torch.tensor([[-1, 0, 0], [0, 0, 0]]), batch_size=[2]))
 
 
-def _oracle_episode(env, exact):
-    env.reset()
+def _oracle_episode(env, exact, targets):
+    env.reset_to(targets)
     step_cov = []
     for _ in range(env.num_pieces):
         if exact:
@@ -112,10 +115,10 @@ def _oracle_episode(env, exact):
 def test_oracle_on_mrchaos104(mrchaos104):
     figs = mrchaos104.figures
     env = TangramEnv(EnvConfig(num_worlds=len(figs), task=SMALL_TASK), seed=0)
-    env.sampler = FixedTargets(np.stack([f.poses for f in figs]))
-    rela, final = _oracle_episode(env, exact=True)
+    targets = np.stack([f.poses for f in figs])
+    rela, final = _oracle_episode(env, exact=True, targets=targets)
     assert final.mean() >= 0.99 and rela.mean() >= 0.99
-    rela_g, final_g = _oracle_episode(env, exact=False)
+    rela_g, final_g = _oracle_episode(env, exact=False, targets=targets)
     fam = np.array([f.family for f in figs])
     for f in ("H-Normal", "H-Hard", "H-Fiendish"):
         m = torch.as_tensor(fam == f)
@@ -170,7 +173,7 @@ def test_preassembled_and_horizon():
 
 
 def test_levels_view_sees_stacking():
-    env = make(1, view_mode="levels", height_levels=3)
+    env = make(1, observation=ObservationConfig(mode="levels", levels=3))
     env.reset()
     w = env.worlds
     w.reset(np.array([0]))
@@ -185,15 +188,16 @@ def test_reward_switches():
     target = np.array([[-0.05, 0.05, 0.0], [0.05, 0.05, 0.0], [-0.05, -0.05, 0.0], [0.05, -0.05, 0.0],
                        [0.0, 0.0, 0.0], [-0.09, 0.0, 0.0], [0.09, 0.0, 0.0]])
     poses = np.stack([target, target])
-    for cfg, expect in [({}, None), ({"reward_shaping": True}, "shaped"), ({"angle_gate": True}, "gated")]:
-        env = make(2, **cfg)
-        env.sampler = FixedTargets(poses)
-        env.reset()
+    for cfg, expect in [({}, None), ({"shaping": True}, "shaped"), ({"angle_gate": True}, "gated")]:
+        env = make(2, reward=RewardConfig(**cfg))
+        env.reset_to(poses)
         # World 0: exact; world 1: shifted 1 cm and turned 45 degrees.
         place = np.stack([target[0], target[0] + [0.01, 0.0, np.pi / 4]])
         out = env.place_poses(place)
         raw = out["info", "step_coverage"][:, 0]
         r = out["reward"][:, 0]
+        terms = out["info", "reward_terms"]
+        assert torch.equal(terms["reward"][:, 0], r) and torch.equal(terms["coverage"][:, 0], raw)
         assert raw[0] > 0.99 and 0.2 < raw[1] < 0.9
         if expect is None:
             assert torch.allclose(r, raw)
@@ -221,11 +225,10 @@ def test_action_noise_and_camera_jitter_switches():
     target[:, :, 0] = np.linspace(-0.09, 0.09, 7)
     a = torch.tensor([[25, 25, 4], [10, 30, 2]])
     outs = {}
-    for name, kw in [("plain", {}), ("noise", {"action_noise_xy": 0.003, "action_noise_theta": 0.05}),
+    for name, kw in [("plain", {}), ("noise", {"action_xy": 0.003, "action_theta": 0.05}),
                      ("jitter", {"camera_jitter": 0.004})]:
-        env = make(2, seed=5, **kw)
-        env.sampler = FixedTargets(target)
-        env.reset()
+        env = make(2, seed=5, noise=NoiseConfig(**kw))
+        env.reset_to(target)
         out = env.step(TensorDict(action=a, batch_size=[2]))["next"]
         outs[name] = (out, env.worlds.qpos[:, :3].copy())
     plain, noisy, jit = outs["plain"], outs["noise"], outs["jitter"]

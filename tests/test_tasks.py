@@ -12,24 +12,35 @@ import shapely
 import torch
 
 from mrchaos.chaos import generate
-from mrchaos.env import EnvConfig, TangramEnv
-from mrchaos.evaluate import FixedTargets
+from mrchaos.env import TangramEnv
 from mrchaos.geometry import rigid_transform
-from mrchaos.goals import TASKS, task_goals
+from mrchaos.config import config_from_dict
+from mrchaos.goals import PRESETS
 from mrchaos.metrics import best_slot_coverage, exclusive_slot_coverage
 from mrchaos.oracle import oracle_poses
 from mrchaos.pieces import Piece, get_piece_set, tangram7
 from mrchaos.raster import View, rasterize
-from mrchaos.task import TaskConfig
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mrchaos"
 
 
 def _env(task: str, piece_set: str | None = None, n: int = 10) -> TangramEnv:
     # Fresh chaos objects, not a cache: the tests set their own targets, and building a cache is slow.
-    over = {**TASKS[task].env_overrides(), **({"piece_set": piece_set} if piece_set else {})}
-    cfg = EnvConfig(num_worlds=n, task=TaskConfig(chaos=1.0, cache=0.0), **over)
-    return TangramEnv(cfg, seed=0)
+    env = {"num_worlds": n, **({"piece_set": piece_set} if piece_set else {})}
+    cfg = config_from_dict({"env": env, "task": {"preset": task, "mix": {"chaos": 1.0, "cache": 0.0}}})
+    return TangramEnv(cfg.env_config(), seed=0)
+
+
+def _goals(task: str):
+    return PRESETS[task].goal_figures(_view(task))
+
+
+def _view(task: str) -> View:
+    return config_from_dict({"task": {"preset": task}}).env.view
+
+
+#: The tasks whose goals we authored (tangram's are the built-in library).
+AUTHORED = sorted(t for t, p in PRESETS.items() if p.authored)
 
 
 def test_cutlery_outlines_are_the_union_of_convex_parts() -> None:
@@ -51,7 +62,7 @@ def test_cutlery_outlines_are_the_union_of_convex_parts() -> None:
 def test_soda_cans_are_interchangeable_66mm_discs() -> None:
     for n in (3, 4, 5, 6):
         ps = get_piece_set(f"soda{n}")
-        assert len(ps) == n and ps.family == "soda" and ps.twins == (tuple(range(n)),)
+        assert len(ps) == n and ps.kind == "soda" and ps.twins == (tuple(range(n)),)
         for p in ps.pieces:
             assert p.symmetry == 0
             assert abs(p.area - np.pi * 0.033**2) < 1e-9  # the disc's area
@@ -76,17 +87,16 @@ def test_the_rasteriser_draws_the_true_outline() -> None:
             assert ((ids[b] >= 0) == (ids[b] == i)).all()
 
 
-@pytest.mark.parametrize("task", sorted(TASKS))
-def test_exact_oracle_assembles_every_authored_goal(task: str) -> None:
-    goals = task_goals(task)
+@pytest.mark.parametrize("task", sorted(PRESETS))
+def test_exact_oracle_assembles_every_goal(task: str) -> None:
+    goals = _goals(task)
     assert len(goals) >= 8
     for g in goals:
         assert g.overlap_area() < 1e-9, g.id
     for name in dict.fromkeys(g.piece_set.name for g in goals):
         sub = [g for g in goals if g.piece_set.name == name]
         env = _env(task, name, n=len(sub))
-        env.sampler = FixedTargets(np.stack([g.poses for g in sub]))
-        env.reset()
+        env.reset_to(np.stack([g.poses for g in sub]))
         for _ in range(len(env.piece_set)):
             out = env.place_poses(oracle_poses(env))
         final = out["info", "final"][:, 0]
@@ -97,12 +107,11 @@ def test_exact_oracle_assembles_every_authored_goal(task: str) -> None:
 @pytest.mark.parametrize("set_name", ["cutlery", "soda6", "soda3"])
 def test_chaos_generators_make_separate_pieces_inside_the_view(set_name: str) -> None:
     task = "cutlery" if set_name == "cutlery" else "soda"
-    preset = TASKS[task]
+    cfg = config_from_dict({"task": {"preset": task}})
     ps = get_piece_set(set_name)
-    cfg = preset.chaos_config()
-    poses, modes = generate(ps, 24, np.random.default_rng(1), cfg)
+    poses, modes = generate(ps, 24, np.random.default_rng(1), cfg.task.chaos, cfg.env.view)
     assert set(modes.tolist()) == {0, 1}
-    half = preset.view_extent / 2
+    half = cfg.env.view.extent / 2
     for obj in poses:
         polys = [shapely.Polygon(rigid_transform(p.outline, q)) for p, q in zip(ps.pieces, obj)]
         assert all(np.abs(np.asarray(pl.exterior.coords)).max() <= half for pl in polys)
@@ -120,13 +129,12 @@ def test_exclusive_slots_pay_one_can_per_slot() -> None:
 
 def test_stacking_cans_on_one_slot_earns_nothing() -> None:
     env = _env("soda", "soda3", n=2)
-    goal = next(g for g in task_goals("soda") if g.id == "soda-row3")
-    env.sampler = FixedTargets(np.stack([goal.poses] * 2))
-    env.reset()
-    first = env.place_poses(env.target[:, 0])
+    goal = next(g for g in _goals("soda") if g.id == "soda-row3")
+    env.reset_to(np.stack([goal.poses] * 2))
+    first = env.place_poses(goal.poses[[0, 0]])
     assert (first["reward"] > 0.95).all()
     # World 0 puts the second can on the first can's slot; world 1 on its own free slot.
-    second = env.place_poses(np.stack([env.target[0, 0], env.target[1, 1]]))
+    second = env.place_poses(goal.poses[[0, 1]])
     assert second["reward"][0].item() < 0.1
     assert second["reward"][1].item() > 0.95
     env.close()
@@ -157,7 +165,7 @@ def test_bench_runs_a_task(tmp_path, capsys) -> None:
     assert bench_main(["--task", "soda", "--families", "h-hard", "--policy", "oracle"]) == 2
 
 
-@pytest.mark.parametrize("task", sorted(TASKS))
+@pytest.mark.parametrize("task", AUTHORED)
 def test_shipped_task_policy_beats_random_on_every_piece_set(task: str, tmp_path) -> None:
     # The default policy of --task is the shipped mrchaos-<task>; soda's Random family draws
     # soda3 ... soda6, so the soda6-trained policy must act on every can count.

@@ -9,9 +9,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from mrchaos.checkpoint import CheckpointError, check_compatible, load_checkpoint, save_checkpoint
+from mrchaos.checkpoint import CheckpointError, check_header, load_checkpoint, save_checkpoint
 from mrchaos.cli.train import main as train_main
 from mrchaos.config import ConfigError, load_config
+from mrchaos.env import EnvConfig, TangramEnv
+from mrchaos.raster import View
+from mrchaos.task import MixConfig, TaskConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "conf" / "smoke.yaml"
@@ -65,10 +68,12 @@ def test_checkpoint_errors(tmp_path):
                         "grid": [51, 51, 8]}, half=True)
     st = load_checkpoint(p)
     assert st["model"]["w"].dtype == torch.float32
-    with pytest.raises(CheckpointError, match="piece set 'tangram7', not 'cans'"):
-        check_compatible(st, p, "cans", [2, 120, 120], [51, 51, 8])
+    soda = TangramEnv(EnvConfig(num_worlds=1, piece_set="soda3", task=TaskConfig(mix=MixConfig(chaos=1.0, cache=0.0))))
+    with pytest.raises(CheckpointError, match="piece set 'tangram7', not 'soda3'"):
+        check_header(st, p, soda)
+    small = TangramEnv(EnvConfig(num_worlds=1, view=View(size=64), task=TaskConfig(mix=MixConfig(chaos=1.0, cache=0.0))))
     with pytest.raises(CheckpointError, match="observation shape"):
-        check_compatible(st, p, "tangram7", [2, 64, 64], [51, 51, 8])
+        check_header(st, p, small)
 
 
 def test_smoke_run_and_resume_after_kill(tmp_path):

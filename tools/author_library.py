@@ -910,7 +910,8 @@ def write_library(figs: list[Figure], path: str | Path) -> None:
     The format's ``units`` field allows millimetres, which keeps 1 nm. Entries are
     otherwise exactly what ``save_figures`` writes.
     """
-    from mrchaos.figure_io import figure_to_dict, write_atomic
+    from mrchaos.atomic import write_atomic
+    from mrchaos.figure_io import figure_to_dict
 
     ps = figs[0].piece_set
     entries = []

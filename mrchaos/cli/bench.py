@@ -43,20 +43,12 @@ def main(argv: list[str] | None = None) -> int:
 def _bench(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     from mrchaos.bench import Bench, format_table, parse_families, resolve_policy, write_outputs
-    from mrchaos.figure_io import FigureSet, load_figures
-    from mrchaos.library import builtin_figures
+    from mrchaos.figure_io import load_figures
 
     families = parse_families(args.families, args.task)
     default = "mrchaos" if args.task == "tangram" else f"mrchaos-{args.task}"
     specs = [resolve_policy(p) for p in (args.policy or [default])]
-    if args.figures:
-        sets = [load_figures(p) for p in args.figures]
-    elif args.task == "tangram":
-        sets = [FigureSet("builtin", builtin_figures(), source="built-in library")]
-    else:
-        from mrchaos.goals import task_goals
-
-        sets = [FigureSet(args.task, task_goals(args.task), source=f"mrchaos.goals ({args.task})")]
+    sets = [load_figures(p) for p in args.figures] if args.figures else None  # None: the task's own goals
     if args.video and args.video.suffix.lower() not in (".gif", ".mp4"):
         raise ValueError(f"{args.video}: --video must end in .gif or .mp4")
     film = args.placement == "robot" and (args.record or args.video)
@@ -82,7 +74,7 @@ def _bench(args: argparse.Namespace) -> int:
     results = bench.run(specs, recorder)
     if recorder is not None:
         recorder.close()
-    results["sources"] = [fs.source for fs in sets]
+    results["sources"] = [fs.source for fs in bench.figure_sets]
     results["random_objects"] = args.random_objects
     write_outputs(results, families, args.out)
     _contact_sheet(bench, specs, args.out)

@@ -12,7 +12,7 @@ from mrchaos.cli.guard import run_command
 from mrchaos.errors import MrchaosError
 
 if TYPE_CHECKING:
-    from mrchaos.figure_io import FigureSet
+    from mrchaos.figure import FigureSet
 
 # The commands import the figure stack (torch, shapely, OpenCV) when they run, so that a
 # broken dependency is reported by run_command as one line instead of failing this import.
@@ -20,7 +20,8 @@ _FIGURE_STACK = ("numpy", "torch", "shapely", "cv2", "PIL")
 
 
 def _load(paths: list[str] | None) -> list[FigureSet]:
-    from mrchaos.figure_io import FigureSet, load_figures
+    from mrchaos.figure import FigureSet
+    from mrchaos.figure_io import load_figures
     from mrchaos.library import builtin_figures
 
     if not paths:
