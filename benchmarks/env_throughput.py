@@ -17,10 +17,11 @@ import time
 
 import torch
 
-from mrchaos.env import EnvConfig, TangramEnv
-from mrchaos.oracle import oracle_actions
-from mrchaos.task import CacheConfig, TaskConfig
-from mrchaos.worlds import PhysicsConfig
+from mrchaos.env.oracle import oracle_actions
+from mrchaos.env.tangram import EnvConfig, TangramEnv
+from mrchaos.sim.worlds import PhysicsConfig
+from mrchaos.tasks.sampler import CacheConfig, TaskConfig
+
 
 def run(n: int, policy: str, episodes: int, threads: int) -> dict:
     torch.set_num_threads(threads)

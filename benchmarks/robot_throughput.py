@@ -16,10 +16,10 @@ import time
 
 import numpy as np
 
-from mrchaos.chaos import ChaosConfig, generate
-from mrchaos.pieces import tangram7
-from mrchaos.robot import RobotConfig
-from mrchaos.worlds import PhysicsConfig, Worlds
+from mrchaos.figures.pieces import tangram7
+from mrchaos.sim.robot import RobotConfig
+from mrchaos.sim.worlds import PhysicsConfig, Worlds
+from mrchaos.tasks.chaos import ChaosConfig, generate
 
 
 def _assemble(worlds: Worlds, targets: np.ndarray) -> tuple[float, dict[str, int]]:

@@ -15,9 +15,9 @@ import csv
 import tempfile
 from pathlib import Path
 
-from mrchaos.config import load_config
-from mrchaos.policy import count_parameters
-from mrchaos.train import Trainer
+from mrchaos.learn.config import load_config
+from mrchaos.learn.policy import count_parameters
+from mrchaos.learn.ppo import Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -19,12 +19,12 @@ import time
 import numpy as np
 import torch
 
-from mrchaos.chaos import attract, scatter
-from mrchaos.config import config_from_dict
-from mrchaos.goals import PRESETS
-from mrchaos.metrics import coverage_counts, piece_coverage
-from mrchaos.pieces import get_piece_set
-from mrchaos.raster import rasterize
+from mrchaos.core.raster import rasterize
+from mrchaos.env.metrics import coverage_counts, piece_coverage
+from mrchaos.figures.pieces import get_piece_set
+from mrchaos.learn.config import config_from_dict
+from mrchaos.tasks.chaos import attract, scatter
+from mrchaos.tasks.presets import PRESETS
 
 
 def _median_time(fn, repeats: int) -> float:

@@ -16,7 +16,7 @@ KILOGRAM = SHARED / "figures" / "kilogram_samples"
 def mrchaos104():
     if not MRCHAOS104.exists():
         pytest.skip(f"{MRCHAOS104} not present (evaluation data lives outside the repo)")
-    from mrchaos.figure_io import load_figures
+    from mrchaos.figures.formats import load_figures
 
     return load_figures(MRCHAOS104)
 
@@ -30,7 +30,7 @@ def kilogram_dir() -> Path:
 
 @pytest.fixture(scope="session")
 def tangram():
-    from mrchaos.pieces import tangram7
+    from mrchaos.figures.pieces import tangram7
 
     return tangram7()
 
@@ -39,7 +39,7 @@ def tangram():
 def rendering() -> str:
     """The OpenGL backend MuJoCo renders with. In CI (``CI=true``) a missing one fails the
     test; elsewhere the test skips, naming what to install."""
-    from mrchaos.opengl import RenderingUnavailable, choose_backend, make_renderer
+    from mrchaos.sim.opengl import RenderingUnavailable, choose_backend, make_renderer
 
     try:
         backend = choose_backend()

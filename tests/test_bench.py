@@ -4,11 +4,10 @@ import numpy as np
 import pytest
 import shapely
 
-from mrchaos.bench import Bench, BenchError, parse_families, resolve_policy
+from mrchaos.bench.benchmark import Bench, BenchError, parse_families, resolve_policy
 from mrchaos.cli.bench import main as bench_main
-from mrchaos.evaluate import evaluate
-from mrchaos.geometry import rigid_transform
-
+from mrchaos.core.geometry import rigid_transform
+from mrchaos.learn.evaluate import evaluate
 from tests.conftest import MRCHAOS104
 
 
@@ -121,8 +120,8 @@ def test_shipped_policy_loads_and_beats_random(tmp_path):
 
 
 def test_mismatched_checkpoint_is_refused(tmp_path, capsys):
-    from mrchaos.bench import shipped_path
-    from mrchaos.checkpoint import load_checkpoint, save_checkpoint
+    from mrchaos.bench.benchmark import shipped_path
+    from mrchaos.learn.checkpoint import load_checkpoint, save_checkpoint
 
     st = load_checkpoint(shipped_path("mrchaos.pt"))
     for key, value, msg in [("piece_set", "cans", "piece set"), ("obs_shape", [2, 64, 64], "observation shape")]:

@@ -5,10 +5,10 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from mrchaos.camera import MujocoCamera
-from mrchaos.env import EnvConfig, TangramEnv
-from mrchaos.raster import rasterize
-from mrchaos.task import CacheConfig, TaskConfig
+from mrchaos.core.raster import rasterize
+from mrchaos.env.tangram import EnvConfig, TangramEnv
+from mrchaos.sim.camera import MujocoCamera
+from mrchaos.tasks.sampler import CacheConfig, TaskConfig
 
 pytestmark = pytest.mark.usefixtures("rendering")
 

@@ -2,10 +2,10 @@ import numpy as np
 import pytest
 import shapely
 
-from mrchaos.chaos import ChaosCache, ChaosConfig, attract, generate, scatter
-from mrchaos.figure import Figure
-from mrchaos.geometry import convex_penetration, rigid_transform
-from mrchaos.pieces import tangram7
+from mrchaos.core.geometry import convex_penetration, rigid_transform
+from mrchaos.figures.figure import Figure
+from mrchaos.figures.pieces import tangram7
+from mrchaos.tasks.chaos import ChaosCache, ChaosConfig, attract, generate, scatter
 
 PS = tangram7()
 
@@ -76,8 +76,8 @@ def test_cache_round_trip_and_errors(tmp_path):
 
 
 def test_a_cache_built_for_a_wider_view_is_refused(tmp_path):
-    from mrchaos.raster import View
-    from mrchaos.task import CacheConfig, MixConfig, TargetSampler, TaskConfig
+    from mrchaos.core.raster import View
+    from mrchaos.tasks.sampler import CacheConfig, MixConfig, TargetSampler, TaskConfig
 
     path = tmp_path / "wide.npz"
     ChaosCache.build(PS, 16, seed=2, view=View(0.26)).save(path)

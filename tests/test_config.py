@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import pytest
 
-from mrchaos.config import ConfigError, config_from_dict, config_to_dict, load_config
+from mrchaos.learn.config import (
+    ConfigError,
+    config_from_dict,
+    config_to_dict,
+    load_config,
+)
 
 OLD_SODA = """
 name: soda

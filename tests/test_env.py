@@ -4,12 +4,11 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
-from mrchaos.env import EnvConfig, TangramEnv
-from mrchaos.oracle import oracle_actions, oracle_poses
-from mrchaos.env import NoiseConfig
-from mrchaos.observation import ObservationConfig
-from mrchaos.rewards import RewardConfig
-from mrchaos.task import CacheConfig, TaskConfig
+from mrchaos.env.observation import ObservationConfig
+from mrchaos.env.oracle import oracle_actions, oracle_poses
+from mrchaos.env.rewards import RewardConfig
+from mrchaos.env.tangram import EnvConfig, NoiseConfig, TangramEnv
+from mrchaos.tasks.sampler import CacheConfig, TaskConfig
 
 SMALL_TASK = TaskConfig(cache=CacheConfig(size=64))
 

@@ -4,12 +4,12 @@ import math
 import numpy as np
 import pytest
 
-from mrchaos.families import FamilyRule, confusion_table
-from mrchaos.figure import Figure, FigureError
-from mrchaos.figure_io import load_figures, load_json, save_figures
-from mrchaos.geometry import rigid_transform
-from mrchaos.kilogram import svg_to_figure
-from mrchaos.pieces import tangram7
+from mrchaos.core.geometry import rigid_transform
+from mrchaos.figures.families import FamilyRule, confusion_table
+from mrchaos.figures.figure import Figure, FigureError
+from mrchaos.figures.formats import load_figures, load_json, save_figures
+from mrchaos.figures.kilogram import svg_to_figure
+from mrchaos.figures.pieces import tangram7
 
 
 def test_mrchaos104_loads_valid(mrchaos104):
@@ -95,7 +95,7 @@ def test_mirrored_parallelogram_is_flagged():
     ps = tangram7()
     par = ps.pieces[3]
     polys = [rigid_transform(p.outline, np.array([0.3 * (i - 3) / 3, 0.0, 0.0])) * [0.3, 1] for i, p in enumerate(ps.pieces)]
-    from mrchaos.figure import figure_from_polygons
+    from mrchaos.figures.figure import figure_from_polygons
 
     polys = [rigid_transform(p.outline, np.array([0.0, 0.0, 0.0])) for p in ps.pieces]
     polys[3] = rigid_transform(par.mirrored_outline(), np.array([0.0, 0.0, 0.3]))

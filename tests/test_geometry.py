@@ -5,8 +5,20 @@ import shapely
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mrchaos.geometry import angle_gap, convex_penetration, fit_pose, polygon_area, rigid_transform
-from mrchaos.pieces import Piece, PieceSet, get_piece_set, register_piece_set, tangram7
+from mrchaos.core.geometry import (
+    angle_gap,
+    convex_penetration,
+    fit_pose,
+    polygon_area,
+    rigid_transform,
+)
+from mrchaos.figures.pieces import (
+    Piece,
+    PieceSet,
+    get_piece_set,
+    register_piece_set,
+    tangram7,
+)
 
 poses = st.tuples(
     st.floats(-0.2, 0.2), st.floats(-0.2, 0.2), st.floats(-math.pi, math.pi)

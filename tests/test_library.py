@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 import shapely
 
-from mrchaos.families import FamilyRule, family_of
-from mrchaos.figure import FAMILIES, Figure
-from mrchaos.library import builtin_figures, library_path
+from mrchaos.figures.families import FamilyRule, family_of
+from mrchaos.figures.figure import FAMILIES, Figure
+from mrchaos.figures.library import builtin_figures, library_path
 
 #: Pieces closer than this (m) touch; the file keeps corners to the nanometre.
 TOUCH = 1e-7

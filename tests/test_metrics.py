@@ -4,13 +4,20 @@ import numpy as np
 import pytest
 import torch
 
-from mrchaos.geometry import rigid_transform
-from mrchaos.metrics import (
-    coverage_counts, final_coverage, gate_angle, gate_penetration, iou, piece_coverage, rela, shape_reward,
+from mrchaos.core.geometry import rigid_transform
+from mrchaos.core.raster import View, rasterize
+from mrchaos.env.metrics import (
+    coverage_counts,
+    final_coverage,
+    gate_angle,
+    gate_penetration,
+    iou,
+    piece_coverage,
+    rela,
+    shape_reward,
     strict_rela,
 )
-from mrchaos.pieces import tangram7
-from mrchaos.raster import View, rasterize
+from mrchaos.figures.pieces import tangram7
 
 PS = tangram7()
 P = len(PS)

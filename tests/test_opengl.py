@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from mrchaos.opengl import RenderingUnavailable, choose_backend
+from mrchaos.sim.opengl import RenderingUnavailable, choose_backend
 
 
 def _python(code: str, **env: str | None) -> subprocess.CompletedProcess:
@@ -18,13 +18,13 @@ def _python(code: str, **env: str | None) -> subprocess.CompletedProcess:
 
 
 def test_import_leaves_a_user_mujoco_gl_alone():
-    r = _python("import os, mrchaos, mrchaos.env, mrchaos.bench; print(os.environ['MUJOCO_GL'])", MUJOCO_GL="egl")
+    r = _python("import os, mrchaos, mrchaos.env.tangram, mrchaos.bench.benchmark; print(os.environ['MUJOCO_GL'])", MUJOCO_GL="egl")
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "egl"
 
 
 def test_import_sets_no_backend_when_none_is_given():
-    r = _python("import os, mrchaos, mrchaos.env, mrchaos.bench, mrchaos.train; "
+    r = _python("import os, mrchaos, mrchaos.env.tangram, mrchaos.bench.benchmark, mrchaos.learn.ppo; "
                 "print(os.environ.get('MUJOCO_GL', '-'), os.environ.get('PYOPENGL_PLATFORM', '-'))")
     assert r.returncode == 0, r.stderr
     assert r.stdout.split() == ["-", "-"]
@@ -48,7 +48,7 @@ def test_no_backend_is_one_line_naming_what_to_install():
 
 
 def test_rendering_with_no_usable_backend_raises_the_one_line_error():
-    code = ("import mujoco\nfrom mrchaos.opengl import RenderingUnavailable, make_renderer\n"
+    code = ("import mujoco\nfrom mrchaos.sim.opengl import RenderingUnavailable, make_renderer\n"
             "m = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom size=\"0.1\"/></worldbody></mujoco>')\n"
             "try:\n    make_renderer(m, 8, 8)\nexcept RenderingUnavailable as e:\n    print('ERR', e)\n")
     r = _python(code, MUJOCO_GL="disable")

@@ -4,9 +4,15 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from mrchaos.actions import ActionGrid
-from mrchaos.policy import FactorisedCategorical, GridCategorical, PolicyConfig, SpatialHead, build_actor_critic
-from mrchaos.raster import View
+from mrchaos.core.raster import View
+from mrchaos.env.actions import ActionGrid
+from mrchaos.learn.policy import (
+    FactorisedCategorical,
+    GridCategorical,
+    PolicyConfig,
+    SpatialHead,
+    build_actor_critic,
+)
 
 
 def test_grid_categorical_sampling_matches_probabilities():

@@ -6,10 +6,10 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mrchaos.chaos import ChaosConfig, scatter
-from mrchaos.geometry import rigid_transform
-from mrchaos.pieces import tangram7
-from mrchaos.raster import View, rasterize
+from mrchaos.core.geometry import rigid_transform
+from mrchaos.core.raster import View, rasterize
+from mrchaos.figures.pieces import tangram7
+from mrchaos.tasks.chaos import ChaosConfig, scatter
 
 VIEW = View()
 PX2 = VIEW.pixel**2

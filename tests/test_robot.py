@@ -8,12 +8,12 @@ import mujoco
 import numpy as np
 import pytest
 
-from mrchaos.kinematics import UR5E, fk, ik
-from mrchaos.pieces import get_piece_set
-from mrchaos.raster import View
-from mrchaos.robot import Robot, RobotConfig
-from mrchaos.scene import SceneConfig, build_model
-from mrchaos.worlds import PhysicsConfig, Worlds
+from mrchaos.core.raster import View
+from mrchaos.figures.pieces import get_piece_set
+from mrchaos.sim.kinematics import UR5E, fk, ik
+from mrchaos.sim.robot import Robot, RobotConfig
+from mrchaos.sim.scene import SceneConfig, build_model
+from mrchaos.sim.worlds import PhysicsConfig, Worlds
 
 TANGRAM = get_piece_set("tangram7")
 
@@ -72,7 +72,7 @@ def test_calibration_finds_a_moved_and_turned_base() -> None:
 def test_a_model_off_the_dh_table_is_solved_by_refinement(tmp_path) -> None:
     """Another UR5e model (like Menagerie's, which differs from the DH table by up to a
     millimetre) is calibrated approximately and each solution refined on its own kinematics."""
-    from mrchaos.robot import default_robot_model
+    from mrchaos.sim.robot import default_robot_model
 
     text = default_robot_model().read_text()
     assert 'name="wrist_1_link" pos="-0.3922 0 0"' in text
@@ -176,7 +176,7 @@ def test_robot_env_specs_and_an_episode() -> None:
     import torch
     from torchrl.envs.utils import check_env_specs
 
-    from mrchaos.env import EnvConfig, TangramEnv
+    from mrchaos.env.tangram import EnvConfig, TangramEnv
 
     env = TangramEnv(EnvConfig(num_worlds=2, placement="robot"), seed=0)
     check_env_specs(env, seed=0)
@@ -188,10 +188,10 @@ def test_robot_env_specs_and_an_episode() -> None:
 
 
 def test_perturbation_moves_the_piece_and_the_episode_goes_on() -> None:
-    from mrchaos.chaos import ChaosConfig, generate
-    from mrchaos.env import EnvConfig, TangramEnv
-    from mrchaos.evaluate import evaluate
-    from mrchaos.oracle import oracle_actions
+    from mrchaos.env.oracle import oracle_actions
+    from mrchaos.env.tangram import EnvConfig, TangramEnv
+    from mrchaos.learn.evaluate import evaluate
+    from mrchaos.tasks.chaos import ChaosConfig, generate
 
     env = TangramEnv(EnvConfig(num_worlds=8), seed=0)
     targets = generate(TANGRAM, 8, np.random.default_rng(3), ChaosConfig())[0]
@@ -214,7 +214,7 @@ def test_perturbation_moves_the_piece_and_the_episode_goes_on() -> None:
 def test_video_files_hold_the_frames(tmp_path, suffix) -> None:
     import cv2
 
-    from mrchaos.animation import write_video
+    from mrchaos.sim.animation import write_video
 
     frames = [np.full((48, 64, 3), 40 * i, dtype=np.uint8) for i in range(5)]
     path = write_video(frames, tmp_path / f"ep{suffix}", fps=5)

@@ -11,15 +11,15 @@ import pytest
 import shapely
 import torch
 
-from mrchaos.chaos import generate
-from mrchaos.env import TangramEnv
-from mrchaos.geometry import rigid_transform
-from mrchaos.config import config_from_dict
-from mrchaos.goals import PRESETS
-from mrchaos.metrics import best_slot_coverage, exclusive_slot_coverage
-from mrchaos.oracle import oracle_poses
-from mrchaos.pieces import Piece, get_piece_set, tangram7
-from mrchaos.raster import View, rasterize
+from mrchaos.core.geometry import rigid_transform
+from mrchaos.core.raster import View, rasterize
+from mrchaos.env.metrics import best_slot_coverage, exclusive_slot_coverage
+from mrchaos.env.oracle import oracle_poses
+from mrchaos.env.tangram import TangramEnv
+from mrchaos.figures.pieces import Piece, get_piece_set, tangram7
+from mrchaos.learn.config import config_from_dict
+from mrchaos.tasks.chaos import generate
+from mrchaos.tasks.presets import PRESETS
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mrchaos"
 
@@ -182,7 +182,7 @@ def test_shipped_task_policy_beats_random_on_every_piece_set(task: str, tmp_path
     for name in ("Authored", "Random"):
         assert fam[name]["final"]["mean"] > rand[name]["final"]["mean"] + 0.1, (name, fam[name], rand[name])
     if task == "soda":
-        from mrchaos.bench import Bench
+        from mrchaos.bench.benchmark import Bench
 
         bench = Bench([], ["Random"], 8, 0, "teleport", 8, task="soda")  # the same seeded Random family
         assert [group[0] for group in bench.targets["Random"]] == ["soda3", "soda4", "soda5", "soda6"]

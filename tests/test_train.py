@@ -9,12 +9,17 @@ from pathlib import Path
 import pytest
 import torch
 
-from mrchaos.checkpoint import CheckpointError, check_header, load_checkpoint, save_checkpoint
 from mrchaos.cli.train import main as train_main
-from mrchaos.config import ConfigError, load_config
-from mrchaos.env import EnvConfig, TangramEnv
-from mrchaos.raster import View
-from mrchaos.task import MixConfig, TaskConfig
+from mrchaos.core.raster import View
+from mrchaos.env.tangram import EnvConfig, TangramEnv
+from mrchaos.learn.checkpoint import (
+    CheckpointError,
+    check_header,
+    load_checkpoint,
+    save_checkpoint,
+)
+from mrchaos.learn.config import ConfigError, load_config
+from mrchaos.tasks.sampler import MixConfig, TaskConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "conf" / "smoke.yaml"
@@ -167,7 +172,7 @@ def test_behaviour_cloning_smoke(tmp_path, capsys):
     assert nll[-1] < nll[0]
     st = load_checkpoint(tmp_path / "bc" / "checkpoints" / "last.pt")
     assert st["kind"] == "mrchaos-policy" and st["policy"]["name"] == "spatial"  # conf/bc.yaml: the default net
-    from mrchaos.bench import resolve_policy
+    from mrchaos.bench.benchmark import resolve_policy
 
     assert resolve_policy(str(tmp_path / "bc")).kind == "checkpoint"
 

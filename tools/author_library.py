@@ -31,7 +31,7 @@ Each figure is checked (:func:`check_figure`), the library is written in the
 interchange format with millimetre units (:func:`write_library` explains why not
 ``save_figures``), and the written file is reloaded and compared with the exact
 figures pixel for pixel (:func:`check_stored`). Families are not stored: the
-perimeter rule (:mod:`mrchaos.families`) assigns them.
+perimeter rule (:mod:`mrchaos.figures.families`) assigns them.
 """
 
 from __future__ import annotations
@@ -47,9 +47,9 @@ import numpy as np
 import shapely
 from shapely.ops import unary_union
 
-from mrchaos.families import FamilyRule, family_of, silhouette_perimeter_px
-from mrchaos.figure import Figure, figure_from_polygons
-from mrchaos.pieces import PieceSet, tangram7
+from mrchaos.figures.families import FamilyRule, family_of, silhouette_perimeter_px
+from mrchaos.figures.figure import Figure, figure_from_polygons
+from mrchaos.figures.pieces import PieceSet, tangram7
 
 A = 100.0 / (2.0 * math.sqrt(2.0))
 B = 50.0
@@ -895,14 +895,14 @@ def build_all(ps: PieceSet | None = None, only: set[str] | None = None, check: b
 LIBRARY_NAME = "mrchaos-library"
 LIBRARY_DESCRIPTION = (
     "Classic tangram figures authored for mrchaos by tools/author_library.py; "
-    "families follow the perimeter rule (mrchaos.families)."
+    "families follow the perimeter rule (mrchaos.figures.families)."
 )
 
 
 def write_library(figs: list[Figure], path: str | Path) -> None:
     """Write the figures as interchange JSON, vertices in millimetres to the nanometre.
 
-    :func:`mrchaos.figure_io.save_figures` stores metres rounded to the micrometre.
+    :func:`mrchaos.figures.formats.save_figures` stores metres rounded to the micrometre.
     The loader re-fits every piece's pose to the rounded corners, so pieces that touch
     exactly come back up to ~0.5 um apart or into each other: overlaps of up to
     7e-8 m^2 and, where a shared edge runs through pixel centres (the rasteriser
@@ -910,8 +910,8 @@ def write_library(figs: list[Figure], path: str | Path) -> None:
     The format's ``units`` field allows millimetres, which keeps 1 nm. Entries are
     otherwise exactly what ``save_figures`` writes.
     """
-    from mrchaos.atomic import write_atomic
-    from mrchaos.figure_io import figure_to_dict
+    from mrchaos.core.atomic import write_atomic
+    from mrchaos.figures.formats import figure_to_dict
 
     ps = figs[0].piece_set
     entries = []
@@ -936,8 +936,8 @@ def write_library(figs: list[Figure], path: str | Path) -> None:
 
 def check_stored(path: str | Path, built: list[Figure], rule: FamilyRule = FamilyRule()) -> None:
     """Reload the written library and check it against the exact figures it came from."""
-    from mrchaos.figure_io import load_json
-    from mrchaos.raster import View
+    from mrchaos.core.raster import View
+    from mrchaos.figures.formats import load_json
 
     fs = load_json(path)
     if fs.rejected:
@@ -989,7 +989,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"    shared {sum(shared.values()):.0f} mm:", shared, "points:", point)
     print("families:", ", ".join(f"{k} {v}" for k, v in sorted(counts.items())), f"(total {len(figs)})")
     if args.sheet:
-        from mrchaos.sheet import figure_sheet, save_png
+        from mrchaos.figures.sheet import figure_sheet, save_png
 
         labelled = [
             Figure(f.id, f.piece_set, f.poses, f.mirrored, name=f.name, family=family_of(f, rule)) for f in figs

@@ -11,7 +11,7 @@ import argparse
 import json
 from pathlib import Path
 
-from mrchaos.checkpoint import load_checkpoint, save_checkpoint
+from mrchaos.learn.checkpoint import load_checkpoint, save_checkpoint
 
 KEEP = ("kind", "config", "policy", "piece_set", "obs_shape", "grid", "view_extent", "model", "curriculum",
         "iteration", "frames", "episodes", "minutes")

@@ -42,8 +42,14 @@ def main(argv: list[str] | None = None) -> int:
 
 def _bench(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
-    from mrchaos.bench import Bench, format_table, parse_families, resolve_policy, write_outputs
-    from mrchaos.figure_io import load_figures
+    from mrchaos.bench.benchmark import (
+        Bench,
+        format_table,
+        parse_families,
+        resolve_policy,
+        write_outputs,
+    )
+    from mrchaos.figures.formats import load_figures
 
     families = parse_families(args.families, args.task)
     default = "mrchaos" if args.task == "tangram" else f"mrchaos-{args.task}"
@@ -55,7 +61,7 @@ def _bench(args: argparse.Namespace) -> int:
     if args.video and args.placement != "robot":
         raise ValueError("--video films the robot: it needs --placement robot")
     if film:
-        from mrchaos.opengl import choose_backend
+        from mrchaos.sim.opengl import choose_backend
 
         choose_backend()  # fail before the evaluation, not after it
     bench = Bench(sets, families, args.random_objects, args.seed, args.placement, args.worlds,
@@ -66,7 +72,7 @@ def _bench(args: argparse.Namespace) -> int:
         print(f"skipped {fid}: {why}", file=sys.stderr)
     recorder = None
     if args.record:
-        from mrchaos.rerun_logger import EpisodeRecorder
+        from mrchaos.loggers.rerun_logger import EpisodeRecorder
 
         env = bench.make_env(specs[0])
         recorder = EpisodeRecorder(args.record, bench.piece_set.names, (env.grid.xs, env.grid.ys), env.view.extent)
@@ -79,7 +85,7 @@ def _bench(args: argparse.Namespace) -> int:
     write_outputs(results, families, args.out)
     _contact_sheet(bench, specs, args.out)
     if args.video:
-        from mrchaos.animation import write_video
+        from mrchaos.sim.animation import write_video
 
         write_video(bench.video_frames, args.video, fps=bench.scene_fps * 2)
         print(f"wrote {args.video} ({len(bench.video_frames)} frames, twice real time)")
@@ -92,7 +98,7 @@ def _bench(args: argparse.Namespace) -> int:
 
 def _contact_sheet(bench, specs, out: Path, per_family: int = 6) -> None:
     """Silhouette against final assembly for a sample of each family, first policy (paper's Fig. 6)."""
-    from mrchaos.sheet import pair_sheet, save_png
+    from mrchaos.figures.sheet import pair_sheet, save_png
 
     pairs = []
     for fam, groups in bench.targets.items():

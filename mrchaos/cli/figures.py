@@ -9,10 +9,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from mrchaos.cli.guard import run_command
-from mrchaos.errors import MrchaosError
+from mrchaos.core.errors import MrchaosError
 
 if TYPE_CHECKING:
-    from mrchaos.figure import FigureSet
+    from mrchaos.figures.figure import FigureSet
 
 # The commands import the figure stack (torch, shapely, OpenCV) when they run, so that a
 # broken dependency is reported by run_command as one line instead of failing this import.
@@ -20,9 +20,9 @@ _FIGURE_STACK = ("numpy", "torch", "shapely", "cv2", "PIL")
 
 
 def _load(paths: list[str] | None) -> list[FigureSet]:
-    from mrchaos.figure import FigureSet
-    from mrchaos.figure_io import load_figures
-    from mrchaos.library import builtin_figures
+    from mrchaos.figures.figure import FigureSet
+    from mrchaos.figures.formats import load_figures
+    from mrchaos.figures.library import builtin_figures
 
     if not paths:
         return [FigureSet("builtin", builtin_figures(), source="builtin")]
@@ -39,8 +39,8 @@ def _report_rejected(sets: list[FigureSet]) -> int:
 
 
 def cmd_sheet(args: argparse.Namespace) -> int:
-    from mrchaos.families import FamilyRule, family_of
-    from mrchaos.sheet import figure_sheet, save_png
+    from mrchaos.figures.families import FamilyRule, family_of
+    from mrchaos.figures.sheet import figure_sheet, save_png
 
     sets = _load(args.figures)
     _report_rejected(sets)
@@ -64,7 +64,11 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_families(args: argparse.Namespace) -> int:
-    from mrchaos.families import FamilyRule, confusion_table, silhouette_perimeter_px
+    from mrchaos.figures.families import (
+        FamilyRule,
+        confusion_table,
+        silhouette_perimeter_px,
+    )
 
     sets = _load(args.figures)
     _report_rejected(sets)
@@ -79,7 +83,7 @@ def cmd_families(args: argparse.Namespace) -> int:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from mrchaos.figure_io import save_figures
+    from mrchaos.figures.formats import save_figures
 
     sets = _load(args.figures)
     _report_rejected(sets)
@@ -92,8 +96,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 
 def cmd_chaos(args: argparse.Namespace) -> int:
-    from mrchaos.chaos import ChaosCache, ChaosConfig
-    from mrchaos.pieces import get_piece_set
+    from mrchaos.figures.pieces import get_piece_set
+    from mrchaos.tasks.chaos import ChaosCache, ChaosConfig
 
     cfg = ChaosConfig(mode=args.mode)
     cache = ChaosCache.build(get_piece_set(args.piece_set), args.n, args.seed, cfg)

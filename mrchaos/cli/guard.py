@@ -5,7 +5,7 @@ outside mrchaos (a ``MUJOCO_GL`` naming a library that is not installed, a broke
 :func:`run_command` imports them first, one by one, so such a failure is reported with
 the package's name, and then runs the command, turning mrchaos's own errors (bad files,
 keys, values) into the same one-line form. This module imports only the standard library
-and :mod:`mrchaos.errors`, so the handler itself cannot fail on an import.
+and :mod:`mrchaos.core.errors`, so the handler itself cannot fail on an import.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 
-from mrchaos.errors import MrchaosError
+from mrchaos.core.errors import MrchaosError
 
 __all__ = ["DependencyError", "import_dependencies", "run_command", "TRAINING_STACK"]
 

@@ -22,9 +22,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
-    from mrchaos.checkpoint import CheckpointError
-    from mrchaos.config import ConfigError, load_config
-    from mrchaos.train import Trainer, resume_config
+    from mrchaos.learn.checkpoint import CheckpointError
+    from mrchaos.learn.config import ConfigError, load_config
+    from mrchaos.learn.ppo import Trainer, resume_config
 
     if args.resume:
         run_dir = Path(args.resume)
@@ -45,7 +45,7 @@ def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
                 f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another name=..."
             )
         if cfg.algo == "bc":
-            from mrchaos.bc import train_bc
+            from mrchaos.learn.bc import train_bc
 
             res = train_bc(cfg, run_dir)
             print(f"{run_dir}: behaviour cloning on {res['samples']} demonstration steps from "

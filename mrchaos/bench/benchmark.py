@@ -1,0 +1,380 @@
+"""The benchmark: the paper's Table I for any set of policies on every family.
+
+Families: **Random** (seeded chaos objects, as in training) and the human-designed
+**H-Normal / H-Hard / H-Fiendish** (a figure set's own labels, else the
+perimeter rule). Each policy places all j pieces of every target in order,
+greedily. Reported per family: Rela and Final (the paper's metrics) and IoU and
+strict Rela (ours), with a 95 % interval (1.96 standard errors) and the count.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mrchaos.core.atomic import write_atomic
+from mrchaos.core.errors import MrchaosError
+from mrchaos.env.oracle import oracle_actions
+from mrchaos.env.tangram import TangramEnv
+from mrchaos.figures.families import FamilyRule, family_of
+from mrchaos.figures.figure import Figure, FigureSet
+from mrchaos.figures.pieces import get_piece_set, piece_set_names
+from mrchaos.learn.checkpoint import (
+    CheckpointError,
+    check_header,
+    load_checkpoint,
+    policy_env,
+)
+from mrchaos.learn.config import config_from_dict
+from mrchaos.learn.evaluate import (
+    EpisodeResults,
+    concat_results,
+    evaluate,
+    policy_actor,
+)
+from mrchaos.tasks.chaos import generate
+from mrchaos.tasks.presets import PRESETS, TaskPreset
+
+__all__ = ["BenchError", "PolicySpec", "resolve_policy", "parse_families", "Bench", "SHIPPED"]
+
+METRICS = ("rela", "final", "iou", "strict_rela")
+#: Learnt policies shipped with the package: name -> (file, label).
+SHIPPED = {
+    "mrchaos": ("mrchaos.pt", "MRChaos (full curriculum, spatial net)"),
+    "mrchaos-paper": ("mrchaos-paper.pt", "MRChaos (full curriculum, paper net)"),
+    "mrchaos-wo-local": ("mrchaos-wo-local.pt", "MRChaos w/o local"),
+    "mrchaos-wo-global": ("mrchaos-wo-global.pt", "MRChaos w/o global"),
+    "bc": ("bc.pt", "BC (trained on the built-in library)"),
+    "mrchaos-cutlery": ("mrchaos-cutlery.pt", "MRChaos on cutlery (conf/cutlery.yaml)"),
+    "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),
+}
+
+
+class BenchError(MrchaosError, ValueError):
+    """Bad benchmark input: one clear line, exit code 2."""
+
+
+@dataclass
+class PolicySpec:
+    """A policy to evaluate: a baseline by name or a checkpoint."""
+
+    name: str
+    label: str
+    kind: str  # "random", "oracle" or "checkpoint"
+    path: str | None = None
+    state: dict | None = field(default=None, repr=False)
+
+
+def shipped_path(file: str) -> Path:
+    return Path(str(resources.files("mrchaos") / "data" / "policies" / file))
+
+
+def resolve_policy(spec: str) -> PolicySpec:
+    """A name (random, oracle, mrchaos, mrchaos-wo-local, mrchaos-wo-global, bc) or a checkpoint / run path."""
+    if spec == "random":
+        return PolicySpec("random", "random (uniform actions)", "random")
+    if spec == "oracle":
+        return PolicySpec("oracle", "oracle (nearest grid; reads the solution)", "oracle")
+    if spec in SHIPPED:
+        file, label = SHIPPED[spec]
+        path = shipped_path(file)
+        if not path.exists():
+            raise BenchError(f"policy {spec!r}: its checkpoint {path} is not shipped with this version")
+        return PolicySpec(spec, label, "checkpoint", str(path), load_checkpoint(path))
+    p = Path(spec)
+    if p.is_dir():
+        p = p / "checkpoints" / "last.pt"
+    if not p.exists():
+        names = ["random", "oracle", *SHIPPED]
+        raise BenchError(f"policy {spec!r}: no such checkpoint or run, and not one of {names}")
+    return PolicySpec(Path(spec).name, f"{Path(spec).name} ({p})", "checkpoint", str(p), load_checkpoint(p))
+
+
+def check_task(task: str) -> TaskPreset:
+    """The preset of ``task``, or :class:`BenchError` naming the known ones."""
+    if task not in PRESETS:
+        raise BenchError(f"unknown task {task!r}; use one of {sorted(PRESETS)}")
+    return PRESETS[task]
+
+
+def parse_families(text: str, task: str = "tangram") -> list[str]:
+    """'all' or a comma-separated list of the task's families: random, h-normal, h-hard,
+    h-fiendish for the tangram, authored and random for the others."""
+    known = {f.lower(): f for f in check_task(task).families}
+    if text.strip().lower() == "all":
+        return list(known.values())
+    out = []
+    for part in text.split(","):
+        key = part.strip().lower()
+        if key not in known:
+            raise BenchError(f"unknown family {part.strip()!r}; use 'all' or some of {sorted(known)}")
+        out.append(known[key])
+    return out
+
+
+def summarise(values: np.ndarray) -> dict[str, float]:
+    """Mean, standard error and 95 % half-interval of per-episode values."""
+    n = len(values)
+    mean = float(np.mean(values)) if n else float("nan")
+    se = float(np.std(values, ddof=1) / math.sqrt(n)) if n > 1 else float("nan")
+    return {"mean": mean, "se": se, "ci95": 1.96 * se if n > 1 else float("nan"), "n": n}
+
+
+class Bench:
+    """Evaluates policies on families.
+
+    Args:
+        figure_sets: figure sets to evaluate on (grouped by family); None for the task's own
+            goals (for tangram, the built-in library).
+        families: families to run.
+        random_objects: Random objects (seeded; the same set every run).
+        seed: seed of the Random objects.
+        placement: "teleport" or "robot" (the UR5e picks and places every piece).
+        num_worlds: worlds evaluated at once.
+        robot_model: UR5e MJCF for robot placement ("" for the package's own).
+        perturb_after: push the piece placed at this step away (the paper's Fig. 6C); None: no push.
+        perturb_distance: how far the push moves it (m).
+        scenes: with robot placement, how many episodes per policy and family are filmed
+            (rendered scene frames for the recording and the video).
+        scene_fps: film frames per simulated second.
+        task: a preset of :data:`mrchaos.tasks.presets.PRESETS`: "tangram" (families Random, H-Normal,
+            H-Hard, H-Fiendish), "cutlery" or "soda" (families Authored and Random).
+    """
+
+    def __init__(
+        self,
+        figure_sets: list[FigureSet] | None,
+        families: list[str],
+        random_objects: int = 200,
+        seed: int = 0,
+        placement: str = "teleport",
+        num_worlds: int = 64,
+        robot_model: str = "",
+        perturb_after: int | None = None,
+        perturb_distance: float = 0.05,
+        scenes: int = 0,
+        scene_fps: float = 4.0,
+        task: str = "tangram",
+    ) -> None:
+        if placement not in ("teleport", "robot"):
+            raise BenchError(f"placement must be 'teleport' or 'robot', got {placement!r}")
+        if scenes and placement != "robot":
+            raise BenchError("filming the scene (--video, scene frames in --record) needs --placement robot")
+        self.placement, self.robot_model = placement, robot_model
+        self.perturb_after, self.perturb_distance = perturb_after, perturb_distance
+        self.scenes, self.scene_fps = scenes, scene_fps
+        #: frames of the first filmed episode (first policy, first family), for a video.
+        self.video_frames: list[np.ndarray] = []
+        self.families = families
+        self.seed = seed
+        self.num_worlds = num_worlds
+        self.task = task
+        self.preset = check_task(task)
+        self.piece_set = get_piece_set(self.preset.piece_set)
+        if perturb_after is not None and not 0 <= perturb_after < len(self.piece_set):
+            raise BenchError(f"--perturb must be a step in [0, {len(self.piece_set) - 1}], got {perturb_after}")
+        self.env_config = config_from_dict({"task": {"preset": task}}, f"task {task}").env_config()
+        kinds = {ps.kind for ps in map(get_piece_set, self.preset.random_sets)}
+        if figure_sets is None:
+            goals = self.preset.goal_figures(self.env_config.view)
+            figure_sets = [FigureSet(task, goals, source=f"the {task} task's goals")]
+        self.figure_sets = figure_sets
+        rule = FamilyRule()
+        #: family -> groups of (piece set name, target poses, episode ids); a family may mix
+        #: piece sets of one family (soda goals of 3 to 6 cans).
+        self.targets: dict[str, list[tuple[str, np.ndarray, list[str]]]] = {}
+        self.skipped = [(fid, why) for fs in figure_sets for fid, why in fs.rejected]
+        figs: list[Figure] = []
+        for fs in figure_sets:
+            for f in fs.figures:
+                if f.piece_set.kind not in kinds:
+                    self.skipped.append((f.id, f"{f.where}: piece set {f.piece_set.name} is not one of this task's"))
+                elif f.has_mirrored:
+                    self.skipped.append((f.id, f"{f.where}: needs a mirrored chiral piece (a suction robot cannot flip it)"))
+                else:
+                    figs.append(f)
+        rng = np.random.default_rng(seed)
+        for fam in families:
+            if fam == "Random":
+                sets = self.preset.random_sets
+                counts = [random_objects // len(sets) + (i < random_objects % len(sets)) for i in range(len(sets))]
+                groups = []
+                for name, k in zip(sets, counts):
+                    if k > 0:
+                        poses = generate(get_piece_set(name), k, rng, self.env_config.task.chaos,
+                                         self.env_config.view)[0]
+                        groups.append((name, poses, [f"random-{i}" if len(sets) == 1 else f"random-{name}-{i}"
+                                                     for i in range(k)]))
+                if groups:
+                    self.targets[fam] = groups
+                continue
+            chosen = [f for f in figs if (fam == "Authored" if self.preset.authored else family_of(f, rule) == fam)]
+            groups = []
+            for name in dict.fromkeys(f.piece_set.name for f in chosen):
+                sub = [f for f in chosen if f.piece_set.name == name]
+                groups.append((name, np.stack([f.poses for f in sub]), [f.id for f in sub]))
+            if groups:
+                self.targets[fam] = groups
+
+    def make_env(self, spec: PolicySpec, piece_set: str | None = None) -> TangramEnv:
+        """The env a policy is evaluated in: the task's settings, then the checkpoint's
+        :data:`mrchaos.learn.checkpoint.POLICY_ENV_GROUPS` (the view, grid and image it was trained on)."""
+        env: dict = {"num_worlds": self.num_worlds, "placement": self.placement, "robot": {"model": self.robot_model},
+                     "piece_set": piece_set or self.piece_set.name}
+        if spec.state is not None:
+            env.update(policy_env(spec.state))
+        # Targets are given at reset: a chaos-only mix keeps the sampler from loading a cache.
+        data = {"env": env, "task": {"preset": self.task, "mix": {"chaos": 1.0, "cache": 0.0, "figures": 0.0}}}
+        return TangramEnv(config_from_dict(data, f"bench env ({spec.name})").env_config(), seed=self.seed)
+
+    def actor(self, spec: PolicySpec, env: TangramEnv):
+        if spec.kind == "oracle":
+            return lambda e, td: oracle_actions(e)
+        if spec.kind == "random":
+            g = torch.Generator().manual_seed(self.seed)
+            nvec = torch.tensor(env.grid.nvec)
+            return lambda e, td: (torch.rand((e.batch_size[0], 3), generator=g) * nvec).long()
+        from mrchaos.learn.policy import PolicyConfig, build_actor_critic
+
+        st = spec.state
+        # A policy acts on any piece set of the family it was trained on (e.g. any can count).
+        trained = st.get("piece_set")
+        same_kind = trained in piece_set_names() and get_piece_set(trained).kind == env.piece_set.kind
+        check_header(st, spec.path, env, piece_set=env.piece_set.name if same_kind else None)
+        try:
+            pcfg = PolicyConfig(**st["policy"])
+            ac = build_actor_critic(pcfg, env.grid, env.view, env.action_spec)
+            ac.load_state_dict(st["model"])
+        except (TypeError, ValueError, RuntimeError, KeyError) as e:
+            raise CheckpointError(f"{spec.path}: cannot rebuild its policy ({str(e)[:200]})") from None
+        ac.eval()
+        return policy_actor(ac.get_policy_operator())
+
+    def run(self, specs: list[PolicySpec], record=None) -> dict:
+        """Results: {policy: {family: {metric: summary}}} plus per-episode arrays for sheets."""
+        results: dict = {"policies": {}, "counts": {}, "skipped": self.skipped, "seed": self.seed}
+        self.episodes: dict[tuple[str, str], EpisodeResults] = {}
+        for spec in specs:
+            per_fam = {}
+            envs: dict[str, tuple] = {}
+            for fam, groups in self.targets.items():
+                parts = []
+                for set_name, poses, ids in groups:
+                    if set_name not in envs:
+                        env = self.make_env(spec, set_name)
+                        renderer = None
+                        if self.scenes:
+                            from mrchaos.sim.animation import SceneRenderer
+
+                            renderer = SceneRenderer(env.scene_model)
+                            env.film(self.scene_fps)
+                        envs[set_name] = (env, self.actor(spec, env), renderer)
+                    env, act, renderer = envs[set_name]
+                    film = self._filmer(env, renderer, spec.name, fam, ids, record) if renderer else None
+                    res = evaluate(env, poses, act, record_steps=record is not None, perturb_after=self.perturb_after,
+                                   perturb_distance=self.perturb_distance, on_step=film)
+                    if record is not None:
+                        record.log_episodes(spec.name, fam, ids, res, env.piece_set.names)
+                    parts.append(res)
+                res = concat_results(parts)
+                self.episodes[(spec.name, fam)] = res
+                per_fam[fam] = {m: summarise(getattr(res, m)) for m in METRICS}
+                if self.placement == "robot":
+                    # Failures per placement: each episode places every piece once.
+                    per_fam[fam]["robot_failures"] = {k: float(v.mean() / len(self.piece_set))
+                                                      for k, v in res.failures.items()}
+                if res.perturbation is not None:
+                    per_fam[fam]["perturbation"] = {k: summarise(v) for k, v in res.perturbation.items()}
+                results["counts"][fam] = len(res.rela)
+            results["policies"][spec.name] = {"label": spec.label, "families": per_fam}
+            for env, _, renderer in envs.values():
+                if renderer is not None:
+                    renderer.close()
+                env.close()
+        results["task"] = self.task
+        results["placement"] = self.placement
+        if self.perturb_after is not None:
+            results["perturb"] = {"after_step": self.perturb_after, "distance_m": self.perturb_distance}
+        return results
+
+    def _filmer(self, env: TangramEnv, renderer, policy: str, family: str, ids: list[str], record):
+        """An ``on_step`` hook that renders the robot's snapshots of the first ``scenes`` episodes."""
+        first_video = not self.video_frames
+
+        def on_step(start: int, t: int, nxt) -> None:
+            for w, states in sorted(env.take_snapshots().items()):
+                ep = start + w
+                if ep >= min(self.scenes, len(ids)):
+                    continue
+                frames = [renderer.render(q) for q in states]
+                if record is not None:
+                    record.log_scene(policy, family, ids[ep], t, frames)
+                if first_video and ep == 0:
+                    self.video_frames.extend(frames)
+
+        return on_step
+
+
+def format_table(results: dict, families: list[str], markdown: bool = False) -> str:
+    """Table I layout (one row per policy, Rela and Final per family), then the strict metrics."""
+    fams = [f for f in families if f in results["counts"]]
+    blocks = []
+    for title, metrics in (("Table I (paper's metrics, %)", ("rela", "final")),
+                           ("Strict metrics (ours, %)", ("iou", "strict_rela"))):
+        short = {"rela": "Rela", "final": "Final", "iou": "IoU", "strict_rela": "sRela"}
+        head = ["policy"] + [f"{f} {short[m]}" for f in fams for m in metrics]
+        rows = []
+        for pol in results["policies"].values():
+            s = pol["families"]
+            rows.append([pol["label"]] + [f"{100 * s[f][m]['mean']:.1f} ± {100 * s[f][m]['ci95']:.1f}"
+                                          for f in fams for m in metrics])
+        rows.append(["n (episodes)"] + sum([[str(results["counts"][f])] + [""] * (len(metrics) - 1) for f in fams], []))
+        if markdown:
+            lines = [f"**{title}**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+            lines += ["| " + " | ".join(r) + " |" for r in rows]
+        else:
+            widths = [max(len(r[i]) for r in rows + [head]) for i in range(len(head))]
+
+            def fmt(r: list[str]) -> str:
+                return "  ".join(c.ljust(widths[i]) if i == 0 else c.rjust(widths[i]) for i, c in enumerate(r))
+
+            lines = [title, fmt(head), "-" * (sum(widths) + 2 * len(widths))] + [fmt(r) for r in rows]
+        blocks.append("\n".join(lines))
+    for name, pol in results["policies"].items():
+        for fam in fams:
+            s = pol["families"][fam]
+            if "robot_failures" in s:
+                rates = ", ".join(f"{k} {100 * v:.1f}" for k, v in s["robot_failures"].items())
+                blocks.append(f"robot failures per placement (%), {name} on {fam}: {rates}")
+            if "perturbation" in s:
+                pt = {k: 100 * v["mean"] for k, v in s["perturbation"].items()}
+                blocks.append(f"push after step {results['perturb']['after_step']}, {name} on {fam}: pushed piece's "
+                              f"coverage {pt['coverage_before']:.1f} -> {pt['coverage_after']:.1f} %, Final "
+                              f"{pt['final_before']:.1f} -> {pt['final_after']:.1f} % at the push, "
+                              f"{pt['final_end']:.1f} % at the end")
+    return "\n\n".join(blocks)
+
+
+def write_outputs(results: dict, families: list[str], out: Path) -> None:
+    """results.json, results.csv and results.md in ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    write_atomic(out / "results.json", json.dumps(results, indent=1, default=float) + "\n")
+    lines = ["policy,family,metric,mean,se,ci95,n"]
+    for name, pol in results["policies"].items():
+        for fam, ms in pol["families"].items():
+            for m, s in ms.items():
+                if m not in METRICS:
+                    continue
+                lines.append(f"{name},{fam},{m},{s['mean']:.6f},{s['se']:.6f},{s['ci95']:.6f},{s['n']}")
+    write_atomic(out / "results.csv", "\n".join(lines) + "\n")
+    md = ["# mrchaos-bench results", "", "Mean ± 95 % interval, in percent. Rela and Final are the paper's metrics; "
+          "IoU and sRela (strict Rela) are ours.", "", format_table(results, families, markdown=True)]
+    if results["skipped"]:
+        md += ["", f"Skipped {len(results['skipped'])} figures:"] + [f"- {fid}: {why}" for fid, why in results["skipped"]]
+    write_atomic(out / "results.md", "\n".join(md) + "\n")

@@ -1,0 +1,493 @@
+"""``TangramEnv``: N batched MuJoCo tangram worlds as one TorchRL environment.
+
+Task description:
+    Place the pieces of a piece set one at a time, in the set's order, so that the
+    assembly covers the silhouette prompt. Each step places piece t at the action's
+    pose (teleport placement followed by MuJoCo settling, see :mod:`mrchaos.sim.worlds`).
+Observation:
+    ``observation`` uint8 (N, 2, H, W): the silhouette I_s stacked on the current
+    top-down view I_tc. The step index is not observed.
+Action:
+    ``action`` int64 (N, 3): indices into the (x, y, theta) grid (``MultiCategorical``).
+Reward:
+    the coverage of piece t's target slot by piece t (twins take the better slot),
+    with the reference's shaping, penetration and angle switches from config.
+Randomizations:
+    targets from the task sampler (chaos objects, cache, figures); optional action
+    noise and camera jitter; the number k of pieces pre-assembled at reset.
+Success:
+    the episode terminates after the last piece (or after ``horizon`` placements);
+    ``info`` carries the per-piece coverage and the whole-figure Final and IoU.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, Unbounded
+from torchrl.envs import EnvBase
+
+from mrchaos.core.raster import Raster, View, rasterize
+from mrchaos.env.actions import ActionGrid
+from mrchaos.env.metrics import (
+    best_slot_coverage,
+    exclusive_slot_coverage,
+    final_from_joint,
+    iou_from_joint,
+    joint_counts,
+    strict_rela,
+)
+from mrchaos.env.observation import ObservationConfig, silhouette_image, view_image
+from mrchaos.env.rewards import REWARD_TERMS, RewardConfig, reward_terms
+from mrchaos.figures.pieces import get_piece_set
+from mrchaos.sim.robot import RobotConfig
+from mrchaos.sim.scene import SceneConfig
+from mrchaos.sim.worlds import PhysicsConfig, Worlds
+from mrchaos.tasks.sampler import TargetBatch, TargetSampler, TaskConfig
+
+__all__ = ["EnvConfig", "NoiseConfig", "TangramEnv", "OracleTargets", "ROBOT_FAILURES"]
+
+#: Failure flags of robot placement in the step info (always False with teleport placement).
+ROBOT_FAILURES = ("unreachable", "missed", "dropped", "collision")
+#: Where the env's wall-clock time goes (seconds, see :meth:`TangramEnv.timings`).
+TIMERS = ("physics", "images", "reward")
+
+
+@dataclass
+class NoiseConfig:
+    """Randomisations of a step: Gaussian noise on the placement pose (std, m and rad) and a
+    per-step shift of the observed view (std, m; rewards use the true view)."""
+
+    action_xy: float = 0.0
+    action_theta: float = 0.0
+    camera_jitter: float = 0.0
+
+
+@dataclass
+class EnvConfig:
+    """Everything that defines the environment, grouped as its parts are.
+
+    Attributes:
+        num_worlds: batch size N.
+        piece_set: registered piece-set name.
+        view: the camera footprint (m) and image size (px).
+        grid: the (x, y, theta) action grid.
+        observation: how the current view is encoded (see :mod:`mrchaos.env.observation`).
+        camera: "raster" (fast orthographic rasteriser) or "mujoco" (MuJoCo's renderer).
+        placement: "teleport" (pieces are set down at the pose) or "robot" (the UR5e picks
+            and places them, see :mod:`mrchaos.sim.executor`).
+        physics: placement physics (see :class:`mrchaos.sim.worlds.PhysicsConfig`).
+        robot: the UR5e, used with ``placement: robot``; ``robot.model`` empty for the
+            package's own MJCF, or MuJoCo Menagerie's ``universal_robots_ur5e/ur5e.xml``.
+        reward: the training reward's switches (see :mod:`mrchaos.env.rewards`).
+        noise: action noise and camera jitter.
+        task: where targets come from (the config's top-level ``task`` group).
+    """
+
+    num_worlds: int = 16
+    piece_set: str = "tangram7"
+    view: View = field(default_factory=View)
+    grid: ActionGrid = field(default_factory=ActionGrid)
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
+    camera: str = "raster"
+    placement: str = "teleport"
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
+    robot: RobotConfig = field(default_factory=RobotConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    task: TaskConfig = field(default_factory=TaskConfig)
+
+    def __post_init__(self) -> None:
+        if self.camera not in ("raster", "mujoco"):
+            raise ValueError(f"env.camera must be 'raster' or 'mujoco', got {self.camera!r}")
+        if self.placement not in ("teleport", "robot"):
+            raise ValueError(f"env.placement must be 'teleport' or 'robot', got {self.placement!r}")
+        if self.num_worlds < 1:
+            raise ValueError(f"env.num_worlds must be >= 1, got {self.num_worlds}")
+
+
+@dataclass
+class OracleTargets:
+    """The privileged answer for every world's next placement: which piece and its exact
+    centroid pose (its own slot). Only oracles and tests may read it."""
+
+    piece: np.ndarray  # (N,) int64
+    pose: np.ndarray  # (N, 3) x, y, theta
+
+
+class TangramEnv(EnvBase):
+    """Batched tangram assembly (see the module docstring for the task).
+
+    Args:
+        cfg: environment config.
+        seed: seed of the env's ``torch.Generator`` (and the numpy generator derived from it).
+        figures: optional figures for the target sampler (instead of ``cfg.task.figure_sets``).
+        device: the env's device; it steps on the CPU.
+
+    Public surface beyond TorchRL's: :meth:`reset_to` (given targets), :meth:`place_poses`
+    (continuous poses), :meth:`perturb`, :meth:`current`, :meth:`oracle_targets`,
+    :meth:`rng_state` / :meth:`set_rng_state`, :meth:`film` / :meth:`take_snapshots`,
+    :meth:`timings`, and the read-only ``piece_set``, ``view``, ``grid``, ``num_pieces``,
+    ``next_piece`` and ``scene_model``.
+    """
+
+    batch_locked = True
+
+    def __init__(self, cfg: EnvConfig = EnvConfig(), seed: int | None = 0, figures=None, device: str = "cpu"):
+        super().__init__(device=device, batch_size=torch.Size([cfg.num_worlds]))
+        self.cfg = cfg
+        self.piece_set = get_piece_set(cfg.piece_set)
+        self.view = cfg.view
+        self.grid = cfg.grid
+        self.obs_cfg = cfg.observation
+        # One height level of the view per piece thickness (the thinnest piece's).
+        self._thickness = min(p.thickness for p in self.piece_set.pieces)
+        robot = cfg.robot if cfg.placement == "robot" else None
+        self._worlds = Worlds(self.piece_set, cfg.num_worlds, cfg.physics, SceneConfig(), self.view, robot)
+        self._sampler = TargetSampler(self.piece_set, cfg.task, figures, self.view)
+        self._camera = None
+        if cfg.camera == "mujoco":
+            from mrchaos.sim.camera import MujocoCamera
+
+            self._camera = MujocoCamera(self._worlds, self.view)
+
+        n, p = cfg.num_worlds, len(self.piece_set)
+        self.num_pieces = p
+        areas = np.array([pc.area for pc in self.piece_set.pieces])
+        self._shaped = torch.as_tensor(areas > areas.min() + 1e-12)
+        self._period = torch.as_tensor([pc.symmetry_period for pc in self.piece_set.pieces], dtype=torch.float32)
+        self._twins = self.piece_set.twin_matrix()
+        # Per-world episode state.
+        self._target = np.zeros((n, p, 3))
+        self._target_ids = torch.full((n, self.view.size, self.view.size), -1, dtype=torch.int8)
+        self._silhouette = torch.zeros((n, self.view.size, self.view.size), dtype=torch.uint8)
+        self.next_piece = np.zeros(n, dtype=np.int64)
+        self.end_piece = np.full(n, p, dtype=np.int64)
+        self.task_source = np.zeros(n, dtype=np.int64)
+        self.task_figure = np.full(n, -1, dtype=np.int64)
+        self._done = torch.zeros((n, 1), dtype=torch.bool)
+        # Summed slot coverage of the placed pieces at the last observation (exclusive slots).
+        self._held = torch.zeros(n)
+        self._timings = dict.fromkeys(TIMERS, 0.0)
+        self._make_specs()
+        self._set_seed(seed)
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self) -> None:
+        n, p, s = self.cfg.num_worlds, self.num_pieces, self.view.size
+        bs = self.batch_size
+        scalar = lambda: Unbounded(shape=(n, 1), dtype=torch.float32)  # noqa: E731
+        flag = lambda: Categorical(2, shape=(n, 1), dtype=torch.bool)  # noqa: E731
+        info = Composite(
+            coverage=Unbounded(shape=(n, p), dtype=torch.float32),
+            step_coverage=scalar(),
+            final=scalar(),
+            iou=scalar(),
+            strict_rela=scalar(),
+            physics=flag(),
+            penetration=scalar(),
+            piece=Unbounded(shape=(n, 1), dtype=torch.int64),
+            reward_terms=Composite({k: scalar() for k in REWARD_TERMS}, shape=bs),
+            **{k: flag() for k in ROBOT_FAILURES},
+            shape=bs,
+        )
+        self.observation_spec = Composite(
+            observation=Bounded(0, 255, shape=(n, 2, s, s), dtype=torch.uint8),
+            info=info,
+            shape=bs,
+        )
+        self.action_spec = MultiCategorical(list(self.grid.nvec), shape=(n, 3), dtype=torch.int64)
+        self.reward_spec = Unbounded(shape=(n, 1), dtype=torch.float32)
+        self.full_done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=bs)
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        if self._camera is not None:
+            self._camera.close()
+        super().close(raise_if_closed=raise_if_closed)
+
+    # ------------------------------------------------------------------ seeding
+    def _set_seed(self, seed: int | None) -> None:
+        self.rng = torch.Generator()
+        if seed is None:
+            self.rng.seed()
+        else:
+            self.rng.manual_seed(int(seed))
+        self._np_rng = np.random.default_rng(int(torch.randint(0, 2**62, (1,), generator=self.rng)))
+
+    def rng_state(self) -> dict:
+        """The env's random state (its torch generator and the numpy one drawn from it), for checkpoints."""
+        return {"torch": self.rng.get_state(), "numpy": self._np_rng.bit_generator.state}
+
+    def set_rng_state(self, state: dict) -> None:
+        """Restore what :meth:`rng_state` returned."""
+        self.rng.set_state(state["torch"])
+        self._np_rng.bit_generator.state = state["numpy"]
+
+    # ------------------------------------------------------------------ reset
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        n, p = self.cfg.num_worlds, self.num_pieces
+        rows = np.arange(n)
+        k = np.zeros(n, dtype=np.int64)
+        horizon = np.full(n, p, dtype=np.int64)
+        targets = None
+        if tensordict is not None:
+            mask = tensordict.get("_reset", None)
+            if mask is not None:
+                rows = np.flatnonzero(mask.reshape(n, -1).any(-1).cpu().numpy())
+            if "preassembled" in tensordict.keys():
+                k = tensordict.get("preassembled").reshape(n).cpu().numpy().astype(np.int64)
+            if "horizon" in tensordict.keys():
+                horizon = tensordict.get("horizon").reshape(n).cpu().numpy().astype(np.int64)
+            if "targets" in tensordict.keys():
+                targets = tensordict.get("targets").cpu().numpy().astype(np.float64)
+                if targets.shape != (n, p, 3):
+                    raise ValueError(f"reset targets must have shape ({n}, {p}, 3), got {targets.shape}")
+        if ((k < 0) | (k >= p)).any():
+            raise ValueError(f"preassembled must be in [0, {p - 1}], got {k.tolist()}")
+        if len(rows):
+            if targets is None:
+                tasks = self._sampler.sample(len(rows), self._np_rng)
+            else:
+                tasks = TargetBatch(targets[rows], np.full(len(rows), 2), rows.copy())
+            self._reset_rows(rows, tasks, k[rows], horizon[rows])
+        return self._observe(fresh=True)
+
+    def reset_to(self, targets: np.ndarray) -> TensorDictBase:
+        """Reset every world to the given target poses (N, P, 3) instead of sampled ones (for evaluation)."""
+        return self.reset(TensorDict(targets=torch.as_tensor(np.asarray(targets, dtype=np.float64)),
+                                     batch_size=self.batch_size))
+
+    def _reset_rows(self, rows: np.ndarray, tasks: TargetBatch, k: np.ndarray, horizon: np.ndarray) -> None:
+        self._target[rows] = tasks.poses
+        self.task_source[rows] = tasks.source
+        self.task_figure[rows] = tasks.figure
+        ps = self.piece_set
+        ids = rasterize(ps.footprints(tasks.poses), self.view, parts=ps.part_piece if ps.parts_per_piece > 1 else None).ids
+        self._target_ids[rows] = ids
+        self._silhouette[rows] = silhouette_image(ids)
+        pre = [(np.flatnonzero(k > j), tasks.poses[k > j, j]) for j in range(self.num_pieces)]
+        self._worlds.reset(rows, [(rows[sub], poses) for sub, poses in pre])
+        self.next_piece[rows] = k
+        self.end_piece[rows] = np.where(horizon > 0, np.minimum(k + horizon, self.num_pieces), self.num_pieces)
+        self._done[rows] = False
+
+    # ------------------------------------------------------------------ step
+    def _check_action(self, action: torch.Tensor) -> np.ndarray:
+        n = self.cfg.num_worlds
+        if action.shape != (n, 3):
+            raise ValueError(f"action must have shape ({n}, 3), got {tuple(action.shape)}")
+        if action.dtype not in (torch.int64, torch.int32, torch.int16, torch.uint8):
+            raise TypeError(f"action must be an integer tensor of grid indices, got {action.dtype}")
+        a = action.cpu().numpy().astype(np.int64)
+        hi = np.array(self.grid.nvec)
+        bad = (a < 0) | (a >= hi)
+        if bad.any():
+            r, c = np.argwhere(bad)[0]
+            raise ValueError(
+                f"action out of range: world {r} component {'xyθ'[c]} = {a[r, c]}, valid 0..{hi[c] - 1}"
+            )
+        return a
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        a = self._check_action(tensordict.get("action"))
+        piece = np.minimum(self.next_piece, self.num_pieces - 1)
+        return self.place_poses(self.piece_set.to_centroid(piece, self.grid.to_pose(a)))
+
+    def place_poses(self, poses: np.ndarray) -> TensorDictBase:
+        """Place the next piece of every world at continuous centroid poses (N, 3); return the step's outputs.
+
+        This is the step without the action grid: the exact oracle and the robot
+        placement use it. Worlds whose episode is over are left unchanged.
+        """
+        n = self.cfg.num_worlds
+        poses = np.asarray(poses, dtype=np.float64).reshape(n, 3)
+        if not np.isfinite(poses).all():
+            raise ValueError("placement poses contain NaN or inf")
+        commanded = poses.copy()
+        noise = self.cfg.noise
+        if noise.action_xy > 0 or noise.action_theta > 0:
+            eps = torch.randn((n, 3), generator=self.rng, dtype=torch.float64).numpy()
+            poses = poses + eps * [noise.action_xy, noise.action_xy, noise.action_theta]
+        rows = np.flatnonzero(self.next_piece < self.end_piece)
+        piece = self.next_piece.copy()
+        physics = np.zeros(n, dtype=bool)
+        penetration = np.zeros(n)
+        failures = {k: np.zeros(n, dtype=bool) for k in ROBOT_FAILURES}
+        if len(rows):
+            t0 = time.perf_counter()
+            res = self._worlds.place(rows, piece[rows], poses[rows])
+            self._timings["physics"] += time.perf_counter() - t0
+            physics[rows], penetration[rows] = res.physics, res.penetration
+            if res.robot is not None:
+                for k in ROBOT_FAILURES:
+                    failures[k][rows] = getattr(res.robot, k)
+            self.next_piece[rows] += 1
+        return self._observe(fresh=False, placement=_Placement(piece, rows, commanded, physics, penetration, failures))
+
+    def perturb(self, rows: np.ndarray, distance: float) -> None:
+        """Push one placed piece of each world in ``rows`` away, ``distance`` metres in a random direction.
+
+        The piece is the most recently placed one; physics moves it (and whatever it hits).
+        The next observation shows the result; the episode goes on from there.
+        """
+        rows = np.asarray(rows, dtype=np.int64)
+        rows = rows[self.next_piece[rows] > 0]
+        if len(rows) == 0:
+            return
+        angle = torch.rand(len(rows), generator=self.rng, dtype=torch.float64).numpy() * 2 * math.pi
+        self._worlds.push(rows, self.next_piece[rows] - 1, np.c_[np.cos(angle), np.sin(angle)] * distance)
+
+    def current(self) -> TensorDictBase:
+        """Observation and info of every world as they are now (no step, no reward)."""
+        out = self._observe(fresh=True)
+        return out.exclude("done", "terminated", "truncated")
+
+    # ------------------------------------------------------------------ privileged and tooling
+    def oracle_targets(self) -> OracleTargets:
+        """The next piece of every world and its exact target pose: the solution, for oracles and tests."""
+        piece = np.minimum(self.next_piece, self.num_pieces - 1)
+        return OracleTargets(piece, self._target[np.arange(self.cfg.num_worlds), piece].copy())
+
+    @property
+    def worlds(self) -> Worlds:
+        """The simulated worlds themselves, for white-box tests that inspect physics state.
+        Modules drive the env through its methods instead (a test keeps it so)."""
+        return self._worlds
+
+    @property
+    def scene_model(self):
+        """The MuJoCo model of the scene (for renderers)."""
+        return self._worlds.model
+
+    def film(self, fps: float) -> None:
+        """With robot placement, keep scene snapshots at ``fps`` per simulated second (0: stop)."""
+        if self._worlds.executor is None:
+            raise ValueError("filming the scene needs robot placement (env.placement: robot)")
+        self._worlds.executor.capture_fps = fps
+
+    def take_snapshots(self) -> dict[int, list[np.ndarray]]:
+        """Scene states (qpos) kept since the last call, by world; empty unless filming."""
+        if self._worlds.executor is None:
+            return {}
+        return self._worlds.executor.take_snapshots()
+
+    def timings(self) -> dict[str, float]:
+        """Seconds spent so far in physics, images and reward (and the share of placements that ran physics)."""
+        return {**self._timings, "physics_share": self._worlds.physics_share}
+
+    # ------------------------------------------------------------------ outputs
+    def _render(self) -> tuple[Raster, Raster]:
+        """The true view (for rewards) and the observed one (camera jitter applied)."""
+        n = self.cfg.num_worlds
+        need_height = self.obs_cfg.needs_height
+        if self._camera is not None:
+            raster = self._camera.render(np.arange(n))
+            return raster, raster
+        raster = self._worlds.raster(self.view, need_height=need_height)
+        if self.cfg.noise.camera_jitter > 0:
+            shift = torch.randn((n, 2), generator=self.rng, dtype=torch.float64).numpy() * self.cfg.noise.camera_jitter
+            return raster, self._worlds.raster(self.view, shift=shift, need_height=need_height)
+        return raster, raster
+
+    def _step_reward(self, p: _Placement, coverage: torch.Tensor, slot: torch.Tensor,
+                     held: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The named reward terms of the worlds that placed a piece (0 elsewhere), (N,) each."""
+        n = self.cfg.num_worlds
+        t = torch.as_tensor(p.piece)
+        ar = torch.arange(n)
+        raw = coverage[ar, t]
+        if self.cfg.reward.twin_slots == "exclusive":
+            # What the placement added to the assembly: a can stacked on another hides
+            # it and takes its slot, which adds nothing.
+            raw = (held - self._held).clamp(min=0.0)
+        slot_theta = torch.as_tensor(self._target[np.arange(n), slot[ar, t].numpy(), 2], dtype=torch.float32)
+        terms = reward_terms(self.cfg.reward, raw, self._shaped[t], torch.as_tensor(p.penetration, dtype=torch.float32),
+                             torch.as_tensor(p.commanded[:, 2], dtype=torch.float32), slot_theta, self._period[t])
+        mask = torch.zeros(n, dtype=torch.bool)
+        mask[torch.as_tensor(p.acted)] = True
+        return {k: torch.where(mask, v, torch.zeros(())) for k, v in terms.items()}
+
+    def _observe(self, fresh: bool, placement: _Placement | None = None) -> TensorDictBase:
+        """Observation, info, reward (unless ``fresh``, i.e. a reset) and done flags of every world."""
+        n, p = self.cfg.num_worlds, self.num_pieces
+        t0 = time.perf_counter()
+        raster, seen = self._render()
+        view = view_image(seen, self.obs_cfg, self._thickness)
+        t1 = time.perf_counter()
+        joint = joint_counts(raster.ids, self._target_ids, p)
+        counts, area = joint[:, 1:, 1:], joint[:, :, 1:].sum(1)
+        slots = exclusive_slot_coverage if self.cfg.reward.twin_slots == "exclusive" else best_slot_coverage
+        coverage, slot = slots(counts, area, self._twins)  # (N, P) each
+        held = (coverage * torch.as_tensor(self._worlds.placed)).sum(1)
+        zeros = torch.zeros(n)
+        terms = dict.fromkeys(REWARD_TERMS, zeros)
+        pieces = torch.zeros(n, dtype=torch.int64)
+        strict = zeros
+        acted = placement is not None and len(placement.acted) > 0
+        if acted:
+            terms = self._step_reward(placement, coverage, slot, held)
+            pieces = torch.as_tensor(placement.piece)
+            mask = torch.zeros(n, dtype=torch.bool)
+            mask[torch.as_tensor(placement.acted)] = True
+            ended = mask & torch.as_tensor(self.next_piece >= self.end_piece)
+            self._done = self._done | ended[:, None]
+        over = self._done[:, 0]
+        if over.any():
+            # The strict metric of every finished episode, from its view as it is now.
+            rows = over.nonzero()[:, 0]
+            strict = zeros.clone()
+            strict[rows] = strict_rela(raster.ids[rows], self._target_ids[rows], self.piece_set.twins, p)
+        self._held = held
+        self._timings["images"] += t1 - t0
+        self._timings["reward"] += time.perf_counter() - t1
+        info = self._info(coverage, terms, joint, strict, pieces, placement)
+        done = self._done.clone()
+        out = TensorDict(
+            observation=torch.stack([self._silhouette, view], dim=1),
+            info=info,
+            done=done,
+            terminated=done.clone(),
+            truncated=torch.zeros(n, 1, dtype=torch.bool),
+            batch_size=self.batch_size,
+        )
+        if not fresh:
+            out.set("reward", terms["reward"].float()[:, None])
+        return out
+
+    def _info(self, coverage: torch.Tensor, terms: dict[str, torch.Tensor], joint: torch.Tensor, strict: torch.Tensor,
+              pieces: torch.Tensor, placement: _Placement | None) -> TensorDict:
+        """The step's info: per-piece coverage, the step's terms, whole-figure metrics and placement flags."""
+        n = self.cfg.num_worlds
+        col = lambda x, dtype=torch.float32: torch.as_tensor(x, dtype=dtype)[:, None]  # noqa: E731
+        no = torch.zeros(n, 1, dtype=torch.bool)
+        return TensorDict(
+            coverage=coverage,
+            step_coverage=col(terms["coverage"]),
+            final=final_from_joint(joint)[:, None],
+            iou=iou_from_joint(joint)[:, None],
+            strict_rela=col(strict),
+            physics=no if placement is None else col(placement.physics, torch.bool),
+            penetration=torch.zeros(n, 1) if placement is None else col(placement.penetration),
+            piece=pieces[:, None],
+            reward_terms=TensorDict({k: col(v) for k, v in terms.items()}, batch_size=self.batch_size),
+            **{k: no if placement is None else col(placement.failures[k], torch.bool) for k in ROBOT_FAILURES},
+            batch_size=self.batch_size,
+        )
+
+
+@dataclass
+class _Placement:
+    """What a step's placement did, per world: the piece, which worlds acted, the commanded
+    pose, whether physics ran, penetration depth and robot failures."""
+
+    piece: np.ndarray
+    acted: np.ndarray
+    commanded: np.ndarray
+    physics: np.ndarray
+    penetration: np.ndarray
+    failures: dict[str, np.ndarray]

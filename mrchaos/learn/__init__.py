@@ -1,0 +1,1 @@
+"""Learning: configs, policies, the curriculum, PPO, behaviour cloning, evaluation and checkpoints."""

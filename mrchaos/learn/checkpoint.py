@@ -1,0 +1,94 @@
+"""Checkpoints: atomic writes, ``weights_only`` loads, clear errors, and compatibility checks.
+
+A checkpoint is a plain dict of tensors and builtin containers (so it loads with
+``torch.load(weights_only=True)``)::
+
+    {"format": 1, "kind": "mrchaos-policy", "config": {...}, "piece_set": "tangram7",
+     "obs_shape": [2, 120, 120], "grid": [51, 51, 8], "model": state_dict, ...training state}
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mrchaos.core.atomic import write_atomic
+from mrchaos.core.errors import MrchaosError
+from mrchaos.learn.config import upgrade_config_dict
+
+__all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "policy_header", "check_header", "policy_env",
+           "POLICY_ENV_GROUPS", "FORMAT"]
+
+#: The env config groups a policy's weights depend on (its input image and its action head);
+#: an evaluation env takes them from the checkpoint.
+POLICY_ENV_GROUPS = ("view", "grid", "observation")
+
+FORMAT = 1
+
+
+class CheckpointError(MrchaosError, RuntimeError):
+    """A missing, corrupt or incompatible checkpoint; the message names the file."""
+
+
+def save_checkpoint(path: str | Path, state: dict[str, Any], half: bool = False) -> None:
+    """Write ``state`` atomically. ``half`` stores floating-point weights of ``state['model']`` as fp16."""
+    state = dict(state, format=FORMAT)
+    if half:
+        state["model"] = {k: (v.half() if v.is_floating_point() else v) for k, v in state["model"].items()}
+        state["half"] = True
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    write_atomic(path, buf.getvalue())
+
+
+def load_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Load a checkpoint with ``weights_only=True``; fp16 weights come back as fp32."""
+    p = Path(path)
+    if not p.exists():
+        raise CheckpointError(f"{p}: no such checkpoint")
+    try:
+        state = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises many types for truncated or foreign files
+        first = (str(e).strip().splitlines() or [""])[0][:160]
+        raise CheckpointError(f"{p}: not a readable checkpoint ({type(e).__name__}: {first})") from None
+    if not isinstance(state, dict) or state.get("format") != FORMAT or "model" not in state:
+        raise CheckpointError(f"{p}: not an mrchaos checkpoint (format {FORMAT})")
+    if state.get("half"):
+        state["model"] = {k: (v.float() if v.is_floating_point() else v) for k, v in state["model"].items()}
+    return state
+
+
+def policy_header(env, policy: dict[str, Any]) -> dict[str, Any]:
+    """What a checkpoint says about the env its policy acts in, beside the policy's own config."""
+    return {
+        "kind": "mrchaos-policy",
+        "policy": policy,
+        "piece_set": env.piece_set.name,
+        "obs_shape": [2, env.view.size, env.view.size],
+        "grid": list(env.grid.nvec),
+        "view_extent": env.view.extent,
+    }
+
+
+def check_header(state: dict[str, Any], path: str | Path, env, piece_set: str | None = None) -> None:
+    """Raise :class:`CheckpointError` unless the checkpoint's policy fits ``env`` (piece set, image, grid).
+
+    ``piece_set`` overrides the checkpoint's own (a policy acts on every set of its kind).
+    """
+    trained = piece_set or state.get("piece_set")
+    if trained != env.piece_set.name:
+        raise CheckpointError(f"{path}: trained on piece set {state.get('piece_set')!r}, not {env.piece_set.name!r}")
+    obs_shape = [2, env.view.size, env.view.size]
+    if list(state.get("obs_shape", [])) != obs_shape:
+        raise CheckpointError(f"{path}: observation shape {state.get('obs_shape')} does not match {obs_shape}")
+    if list(state.get("grid", [])) != list(env.grid.nvec):
+        raise CheckpointError(f"{path}: action grid {state.get('grid')} does not match {list(env.grid.nvec)}")
+
+
+def policy_env(state: dict[str, Any]) -> dict[str, Any]:
+    """The env groups of :data:`POLICY_ENV_GROUPS` the checkpoint was trained with (nested, current keys)."""
+    env = upgrade_config_dict(state.get("config", {})).get("env", {})
+    return {k: env[k] for k in POLICY_ENV_GROUPS if k in env}

@@ -1,0 +1,414 @@
+"""Training configuration: YAML files loaded into typed dataclasses, with dotted overrides.
+
+    cfg = load_config("conf/full.yaml", ["optim.lr=1e-4", "env.num_worlds=64"])
+
+An unknown key, a value of the wrong type or a missing file raises
+:class:`ConfigError`, whose message names the file and lists the valid keys.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from mrchaos.core.errors import MrchaosError
+from mrchaos.env.tangram import EnvConfig
+from mrchaos.learn.policy import PolicyConfig
+from mrchaos.tasks.presets import PRESETS, get_preset
+from mrchaos.tasks.sampler import TaskConfig
+
+__all__ = [
+    "ConfigError",
+    "CurriculumConfig",
+    "CollectorConfig",
+    "LossConfig",
+    "OptimConfig",
+    "LoggerConfig",
+    "CheckpointConfig",
+    "BCConfig",
+    "TrainConfig",
+    "load_config",
+    "config_from_dict",
+    "upgrade_config_dict",
+    "config_to_dict",
+]
+
+
+class ConfigError(MrchaosError, ValueError):
+    """A bad configuration file or override."""
+
+
+@dataclass
+class CurriculumConfig:
+    """The two-stage curriculum.
+
+    Attributes:
+        stages: "both" (local then global), "local" (stage 1 only), "global" (stage 2 only).
+        window: W, iterations over which stage-1 reward must improve.
+        epsilon: the switch happens when the stage-1 reward has not improved by more
+            than this over the last ``window`` iterations.
+        min_iters: never switch before this many stage-1 iterations.
+        max_minutes: with a fixed time budget, switch at the latest after this many
+            minutes of training even if stage 1 still improves (0 = no cap).
+    """
+
+    stages: str = "both"
+    window: int = 20
+    epsilon: float = 0.01
+    min_iters: int = 20
+    max_minutes: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.stages not in ("both", "local", "global"):
+            raise ValueError(f"curriculum.stages must be 'both', 'local' or 'global', got {self.stages!r}")
+
+
+@dataclass
+class CollectorConfig:
+    """Data collection: ``frames_per_batch`` world-steps per iteration, ``total_frames`` in all
+    (-1 = unbounded, stop on ``max_minutes``), ``kind`` "sync" (one env in this process) or
+    "multisync" (``workers`` processes)."""
+
+    frames_per_batch: int = 2048
+    total_frames: int = 2_000_000
+    max_minutes: float = 0.0
+    kind: str = "sync"
+    workers: int = 2
+
+
+@dataclass
+class LossConfig:
+    """PPO: clipping, entropy and critic coefficients, GAE parameters, epochs and minibatches."""
+
+    gamma: float = 0.99
+    lmbda: float = 0.95
+    clip_epsilon: float = 0.2
+    entropy_coeff: float = 0.01
+    critic_coeff: float = 0.5
+    normalize_advantage: bool = True
+    epochs: int = 3
+    minibatch_size: int = 512
+
+
+@dataclass
+class OptimConfig:
+    """Adam (the paper's learning rate) and gradient clipping."""
+
+    lr: float = 2e-4
+    max_grad_norm: float = 0.5
+    weight_decay: float = 0.0
+
+
+@dataclass
+class LoggerConfig:
+    """Where and how often to log: CSV every iteration, rerun images every ``image_every`` iterations."""
+
+    csv: bool = True
+    rerun: bool = True
+    image_every: int = 20
+    image_worlds: int = 4
+    progress: bool = True
+
+
+@dataclass
+class CheckpointConfig:
+    """Save every ``every`` iterations and at the end; keep the last ``keep`` numbered ones."""
+
+    every: int = 10
+    keep: int = 3
+
+
+@dataclass
+class BCConfig:
+    """Behaviour-cloning data and optimisation.
+
+    Attributes:
+        figure_sets: figures to demonstrate ("builtin" = the shipped library).
+        rotations: rotate each figure by k * 360/rotations degrees, k < rotations.
+        shifts: random shifts per rotation (plus the unshifted figure).
+        max_shift: largest shift (m); figures that would leave the view are not shifted.
+        epochs: passes over the demonstrations.
+        minibatch_size: samples per gradient step.
+    """
+
+    figure_sets: list[str] = field(default_factory=lambda: ["builtin"])
+    rotations: int = 8
+    shifts: int = 3
+    max_shift: float = 0.02
+    epochs: int = 20
+    minibatch_size: int = 256
+
+
+@dataclass
+class TrainConfig:
+    """A whole experiment: ``algo`` "ppo" (the method) or "bc" (behaviour cloning, the baseline)."""
+
+    name: str = "run"
+    algo: str = "ppo"
+    seed: int = 0
+    device: str = "cpu"
+    threads: int = 2
+    runs_dir: str = "runs"
+    env: EnvConfig = field(default_factory=EnvConfig)
+    task: TaskConfig = field(default_factory=TaskConfig)
+    curriculum: CurriculumConfig = field(default_factory=CurriculumConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    collector: CollectorConfig = field(default_factory=CollectorConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    bc: BCConfig = field(default_factory=BCConfig)
+
+    def __post_init__(self) -> None:
+        if self.algo not in ("ppo", "bc"):
+            raise ValueError(f"algo must be 'ppo' or 'bc', got {self.algo!r}")
+
+    def env_config(self) -> EnvConfig:
+        """The env config with the task group folded in."""
+        return dataclasses.replace(self.env, task=self.task)
+
+
+#: Keys of earlier releases (flat env and task groups) and where they live now. Old YAML
+#: files and the configs stored in old checkpoints load through :func:`upgrade_config_dict`.
+RENAMED: dict[str, str] = {
+    "env.view_extent": "env.view.extent",
+    "env.view_size": "env.view.size",
+    "env.grid_nx": "env.grid.nx",
+    "env.grid_ny": "env.grid.ny",
+    "env.grid_ntheta": "env.grid.ntheta",
+    "env.grid_half_range": "env.grid.half_range",
+    "env.view_mode": "env.observation.mode",
+    "env.height_levels": "env.observation.levels",
+    "env.robot_model": "env.robot.model",
+    "env.settle_steps": "env.physics.settle_steps",
+    "env.release_gap": "env.physics.release_gap",
+    "env.push_depth": "env.physics.push_depth",
+    "env.nthread": "env.physics.nthread",
+    "env.twin_slots": "env.reward.twin_slots",
+    "env.reward_shaping": "env.reward.shaping",
+    "env.shaping_threshold": "env.reward.shaping_threshold",
+    "env.penetration_gate": "env.reward.penetration_gate",
+    "env.penetration_limit": "env.reward.penetration_limit",
+    "env.angle_gate": "env.reward.angle_gate",
+    "env.angle_tolerance_deg": "env.reward.angle_tolerance_deg",
+    "env.action_noise_xy": "env.noise.action_xy",
+    "env.action_noise_theta": "env.noise.action_theta",
+    "env.camera_jitter": "env.noise.camera_jitter",
+    "task.chaos": "task.mix.chaos",
+    "task.cache": "task.mix.cache",
+    "task.figures": "task.mix.figures",
+    "task.chaos_mode": "task.chaos.mode",
+    "task.attract_fraction": "task.chaos.attract_fraction",
+    "task.angle_step": "task.chaos.angle_step",
+    "task.workspace": "task.chaos.workspace",
+    "task.cache_path": "task.cache.path",
+    "task.cache_size": "task.cache.size",
+    "task.cache_seed": "task.cache.seed",
+}
+
+
+def _get_dotted(data: dict, dotted: str) -> tuple[bool, Any]:
+    node: Any = data
+    for p in dotted.split("."):
+        if not isinstance(node, dict) or p not in node:
+            return False, None
+        node = node[p]
+    return True, node
+
+
+def upgrade_config_dict(data: dict) -> dict:
+    """A copy of a raw config dict with keys of earlier releases moved to their new homes.
+
+    Old flat keys (``env.view_extent``) become nested ones (``env.view.extent``); an old
+    ``task.chaos: 0.5`` or ``task.cache: 1.0`` (mix weights, numbers) are told from the new
+    ``task.chaos`` and ``task.cache`` groups (mappings) by their type. A config of an old release that names no task preset gets the
+    one whose piece sets hold its ``env.piece_set``.
+    """
+    data = copy.deepcopy(data)
+    old_task = isinstance(data.get("task"), dict) and "preset" not in data["task"]
+    for old, new in RENAMED.items():
+        group, key = old.split(".")
+        node = data.get(group)
+        if not isinstance(node, dict) or key not in node:
+            continue
+        if isinstance(node[key], dict):
+            continue  # task.chaos and task.cache: already the new groups (the old keys held numbers)
+        value = node.pop(key)
+        found, existing = _get_dotted(data, new)
+        if found and existing != value:
+            raise ConfigError(f"both '{old}' (an old key) and '{new}' are set; keep '{new}'")
+        _set_dotted(data, new, value)
+    piece_set = _get_dotted(data, "env.piece_set")[1]
+    if (old_task or "task" not in data) and piece_set is not None:
+        for name, preset in PRESETS.items():
+            if piece_set == preset.piece_set or piece_set in preset.random_sets:
+                data.setdefault("task", {})["preset"] = name
+                break
+    return data
+
+
+def _merge_under(base: dict, top: dict) -> dict:
+    """``top`` laid over ``base``, recursively: ``top``'s values win."""
+    out = copy.deepcopy(base)
+    for k, v in top.items():
+        out[k] = _merge_under(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _valid_keys(cls: type, prefix: str = "") -> list[str]:
+    keys = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        t = hints[f.name]
+        if dataclasses.is_dataclass(t) and not (cls is EnvConfig and f.name == "task"):
+            keys.extend(_valid_keys(t, f"{prefix}{f.name}."))
+        elif not (cls is EnvConfig and f.name == "task"):
+            keys.append(f"{prefix}{f.name}")
+    return keys
+
+
+def _coerce(value: Any, t: Any, where: str) -> Any:
+    origin = typing.get_origin(t)
+    args = typing.get_args(t)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(value, a, where)
+            except ConfigError:
+                pass
+        raise ConfigError(f"{where}: {value!r} is not a {t}")
+    if origin is list:
+        if not isinstance(value, list):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        return [_coerce(v, args[0] if args else Any, where) for v in value]
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        if args and args[-1] is not Ellipsis and len(value) != len(args):
+            raise ConfigError(f"{where}: expected {len(args)} values, got {value!r}")
+        types_ = [args[0]] * len(value) if args and args[-1] is Ellipsis else list(args) or [Any] * len(value)
+        return tuple(_coerce(v, t_, where) for v, t_ in zip(value, types_))
+    if t is Any:
+        return value
+    if t is bool:
+        if isinstance(value, bool):
+            return value
+        raise ConfigError(f"{where}: expected true/false, got {value!r}")
+    if t is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if t is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if t is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    return value
+
+
+def _build(cls: type, data: dict, where: str, prefix: str = "") -> Any:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: {prefix or 'top level'} must be a mapping, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in data.items():
+        if cls is EnvConfig and key == "task":
+            raise ConfigError(f"{where}: put the task settings in the top-level 'task' group, not 'env.task'")
+        if key not in names:
+            raise ConfigError(
+                f"{where}: unknown key '{prefix}{key}'. Valid keys: {', '.join(_valid_keys(cls, prefix))}"
+            )
+        t = hints[key]
+        if dataclasses.is_dataclass(t):
+            kwargs[key] = _build(t, value or {}, where, f"{prefix}{key}.")
+        else:
+            kwargs[key] = _coerce(value, t, f"{where}: {prefix}{key}")
+    try:
+        return cls(**kwargs)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"{where}: {e}") from None
+
+
+def _set_dotted(data: dict, dotted: str, value: Any) -> None:
+    parts = dotted.split(".")
+    node = data
+    for p in parts[:-1]:
+        node = node.setdefault(p, {})
+        if not isinstance(node, dict):
+            raise ConfigError(f"override {dotted}: '{p}' is not a group")
+    node[parts[-1]] = value
+
+
+def load_config(path: str | Path | None, overrides: list[str] | None = None) -> TrainConfig:
+    """Load a YAML experiment (or the defaults when ``path`` is None) and apply ``key=value`` overrides."""
+    data: dict = {}
+    where = str(path) if path else "<defaults>"
+    if path is not None:
+        p = Path(path)
+        if not p.exists():
+            raise ConfigError(f"{p}: no such config file")
+        try:
+            data = yaml.safe_load(p.read_text()) or {}
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{p}: not valid YAML ({e})") from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"{p}: the top level must be a mapping, got {data!r}")
+    data = upgrade_config_dict(data)
+    for ov in overrides or []:
+        if "=" not in ov:
+            raise ConfigError(f"override {ov!r}: expected key=value")
+        key, raw = ov.split("=", 1)
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            value = raw
+        key = key.strip()
+        if key in RENAMED and not isinstance(value, dict):
+            key = RENAMED[key]
+        _set_dotted(data, key, value)
+        where = f"{where} (with overrides)"
+    return config_from_dict(data, where)
+
+
+def config_from_dict(data: dict, where: str = "<dict>") -> TrainConfig:
+    """A :class:`TrainConfig` from a raw nested dict: old keys moved, the task preset laid underneath."""
+    data = upgrade_config_dict(data)
+    task = data.get("task") or {}
+    name = task.get("preset", TaskConfig.preset) if isinstance(task, dict) else TaskConfig.preset
+    try:
+        preset = get_preset(name)
+    except KeyError as e:
+        raise ConfigError(f"{where}: task.preset: {e.args[0]}") from None
+    return _build(TrainConfig, _merge_under(preset.config_overrides(), data), where)
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def config_to_dict(cfg: Any) -> dict:
+    """Plain-dict form of a config (for YAML and checkpoints; tuples become lists)."""
+    d = _plain(dataclasses.asdict(cfg))
+    if isinstance(cfg, TrainConfig):
+        d["env"].pop("task", None)
+    return d

@@ -1,0 +1,269 @@
+"""Policies: the paper's factorised network and our fully convolutional one, as TorchRL modules.
+
+Both read ``observation`` (uint8, N x 2 x H x W) and share a trunk between the
+actor and the value head (``ActorValueOperator``).
+
+* ``paper``: three conv layers, an MLP with 512 hidden units, and factorised
+  categorical heads for x, y and theta (the reference code's MultiDiscrete policy).
+* ``spatial``: a fully convolutional net whose last layer gives one logit per
+  (theta, y, x) grid action, read at the grid's positions in the image, so that
+  "place here" is learnt the same way at every position; a global context vector
+  (FiLM) tells every position what stage of the assembly it is in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torch.distributions import Categorical, Distribution, constraints
+from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperator
+
+from mrchaos.core.raster import View
+from mrchaos.env.actions import ActionGrid
+
+__all__ = ["PolicyConfig", "FactorisedCategorical", "GridCategorical", "build_actor_critic", "count_parameters", "POLICIES"]
+
+POLICIES = ("paper", "spatial")
+
+
+@dataclass
+class PolicyConfig:
+    """Network choice and sizes.
+
+    Attributes:
+        name: "paper" or "spatial".
+        pool: average-pool the 120x120 input by this factor first (1 = none).
+        channels: conv widths of the trunk.
+        hidden: MLP width (paper) / context width (spatial).
+    """
+
+    name: str = "spatial"
+    pool: int = 2
+    channels: list[int] = field(default_factory=lambda: [16, 32, 32])
+    hidden: int = 512
+
+    def __post_init__(self) -> None:
+        if self.name not in POLICIES:
+            raise ValueError(f"policy.name must be one of {POLICIES}, got {self.name!r}")
+        if len(self.channels) != 3 or min(self.channels) < 1:
+            raise ValueError(f"policy.channels must be three positive widths, got {self.channels}")
+        if self.pool < 1:
+            raise ValueError(f"policy.pool must be >= 1, got {self.pool}")
+
+
+class FactorisedCategorical(Distribution):
+    """Independent categoricals over x, y and theta; samples are (..., 3) int64 indices."""
+
+    arg_constraints: dict = {}
+    has_enumerate_support = False
+
+    def __init__(self, logits_x: torch.Tensor, logits_y: torch.Tensor, logits_t: torch.Tensor) -> None:
+        self.parts = (Categorical(logits=logits_x), Categorical(logits=logits_y), Categorical(logits=logits_t))
+        super().__init__(batch_shape=logits_x.shape[:-1], event_shape=torch.Size([3]), validate_args=False)
+
+    @property
+    def support(self):
+        return constraints.integer_interval(0, max(p.logits.shape[-1] for p in self.parts) - 1)
+
+    def sample(self, sample_shape: torch.Size = torch.Size()) -> torch.Tensor:
+        return torch.stack([p.sample(sample_shape) for p in self.parts], -1)
+
+    def log_prob(self, value: torch.Tensor) -> torch.Tensor:
+        value = value.long()
+        return sum(p.log_prob(value[..., i]) for i, p in enumerate(self.parts))
+
+    def entropy(self) -> torch.Tensor:
+        return sum(p.entropy() for p in self.parts)
+
+    @property
+    def mode(self) -> torch.Tensor:
+        return torch.stack([p.logits.argmax(-1) for p in self.parts], -1)
+
+    @property
+    def deterministic_sample(self) -> torch.Tensor:
+        return self.mode
+
+
+class GridCategorical(Distribution):
+    """One categorical over the flattened (theta, y, x) grid; samples are (..., 3) indices (x, y, theta).
+
+    Sampling uses the Gumbel-max trick: ``torch.multinomial`` over 20,808 categories
+    costs about 0.5 ms per sample on this CPU, the Gumbel argmax 0.03 ms.
+    """
+
+    arg_constraints: dict = {}
+    has_enumerate_support = False
+
+    def __init__(self, logits: torch.Tensor) -> None:
+        # logits: (..., T, Y, X)
+        self.grid_shape = logits.shape[-3:]
+        self.logits = torch.log_softmax(logits.flatten(-3), -1)
+        super().__init__(batch_shape=logits.shape[:-3], event_shape=torch.Size([3]), validate_args=False)
+
+    @property
+    def support(self):
+        return constraints.integer_interval(0, max(self.grid_shape) - 1)
+
+    def _unravel(self, flat: torch.Tensor) -> torch.Tensor:
+        t, y, x = self.grid_shape
+        return torch.stack([flat % x, (flat // x) % y, flat // (x * y)], -1)
+
+    def sample(self, sample_shape: torch.Size = torch.Size()) -> torch.Tensor:
+        with torch.no_grad():
+            logits = self.logits.expand(*sample_shape, *self.logits.shape)
+            u = torch.rand_like(logits).clamp_(1e-20, 1.0)
+            return self._unravel((logits - torch.log(-torch.log(u))).argmax(-1))
+
+    def log_prob(self, value: torch.Tensor) -> torch.Tensor:
+        t, y, x = self.grid_shape
+        value = value.long()
+        flat = value[..., 2] * (x * y) + value[..., 1] * x + value[..., 0]
+        return torch.gather(self.logits, -1, flat.unsqueeze(-1)).squeeze(-1)
+
+    def entropy(self) -> torch.Tensor:
+        return -(self.logits.exp() * self.logits).sum(-1)
+
+    @property
+    def mode(self) -> torch.Tensor:
+        return self._unravel(self.logits.argmax(-1))
+
+    @property
+    def deterministic_sample(self) -> torch.Tensor:
+        return self.mode
+
+
+def _prep(obs: torch.Tensor, pool: int) -> torch.Tensor:
+    x = obs.float() * (1.0 / 255.0)
+    return F.avg_pool2d(x, pool) if pool > 1 else x
+
+
+class PaperTrunk(nn.Module):
+    """3 conv layers (8/4, 4/2, 3/1 kernels/strides, as the reference CNN) and a 512-unit MLP layer."""
+
+    def __init__(self, cfg: PolicyConfig, size: int) -> None:
+        super().__init__()
+        c1, c2, c3 = cfg.channels
+        self.pool = cfg.pool
+        self.conv = nn.Sequential(
+            nn.Conv2d(2, c1, 8, stride=4), nn.ReLU(),
+            nn.Conv2d(c1, c2, 4, stride=2), nn.ReLU(),
+            nn.Conv2d(c2, c3, 3, stride=1), nn.ReLU(),
+            nn.Flatten(),
+        )
+        with torch.no_grad():
+            n = self.conv(torch.zeros(1, 2, size // cfg.pool, size // cfg.pool)).shape[-1]
+        self.fc = nn.Sequential(nn.Linear(n, cfg.hidden), nn.ReLU())
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        lead = obs.shape[:-3]
+        x = _prep(obs.reshape(-1, *obs.shape[-3:]), self.pool)
+        return self.fc(self.conv(x)).reshape(*lead, -1)
+
+
+class PaperHeads(nn.Module):
+    def __init__(self, hidden: int, grid: ActionGrid) -> None:
+        super().__init__()
+        self.x, self.y, self.t = nn.Linear(hidden, grid.nx), nn.Linear(hidden, grid.ny), nn.Linear(hidden, grid.ntheta)
+
+    def forward(self, h: torch.Tensor):
+        return self.x(h), self.y(h), self.t(h)
+
+
+class SpatialTrunk(nn.Module):
+    """Fully convolutional features on a 4x4-pixel lattice (8.7 mm cells) with a FiLM global context.
+
+    The first layer cuts the image into 4x4 patches (as a stride-4 conv), which keeps
+    the later 3x3 layers at 30x30 and the whole net cheap on a CPU; the dilated last
+    layer sees about 8 cm around every cell.
+    """
+
+    def __init__(self, cfg: PolicyConfig, size: int) -> None:
+        super().__init__()
+        c1, c2, c3 = cfg.channels
+        self.pool = cfg.pool
+        patch = max(1, 4 // cfg.pool)
+        self.enc = nn.Sequential(
+            nn.Conv2d(2, c1, patch, stride=patch), nn.ReLU(),
+            nn.Conv2d(c1, c2, 3, padding=1), nn.ReLU(),
+            nn.Conv2d(c2, c3, 3, padding=2, dilation=2), nn.ReLU(),
+        )
+        self.ctx = nn.Sequential(nn.Linear(2 * c3, cfg.hidden), nn.ReLU())
+        self.film = nn.Linear(cfg.hidden, 2 * c3)
+        self.out_channels = c3
+        self.hidden = cfg.hidden
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        lead = obs.shape[:-3]
+        # channels_last halves the cost of these small convolutions on CPU (measured).
+        x = _prep(obs.reshape(-1, *obs.shape[-3:]), self.pool).contiguous(memory_format=torch.channels_last)
+        f = self.enc(x)
+        g = self.ctx(torch.cat([f.mean((-2, -1)), f.amax((-2, -1))], -1))
+        scale, shift = self.film(g).chunk(2, -1)
+        f = F.relu(f * (1 + scale[..., None, None]) + shift[..., None, None])
+        return f.reshape(*lead, *f.shape[1:]), g.reshape(*lead, -1)
+
+
+class SpatialHead(nn.Module):
+    """Per-position logits for every angle, sampled at the action grid's image positions."""
+
+    def __init__(self, channels: int, grid: ActionGrid, view: View) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(channels, grid.ntheta, 1)
+        # Normalised image coordinates of the grid (grid_sample: x right, y down, [-1, 1] at the edges).
+        gx = torch.as_tensor(grid.xs, dtype=torch.float32) / (view.extent / 2)
+        gy = -torch.as_tensor(grid.ys, dtype=torch.float32) / (view.extent / 2)
+        yy, xx = torch.meshgrid(gy, gx, indexing="ij")
+        self.register_buffer("where", torch.stack([xx, yy], -1)[None])  # (1, Y, X, 2)
+
+    def forward(self, f: torch.Tensor) -> torch.Tensor:
+        lead = f.shape[:-3]
+        f = f.reshape(-1, *f.shape[-3:])
+        logits = self.conv(f)
+        where = self.where.expand(f.shape[0], -1, -1, -1)
+        out = F.grid_sample(logits, where, mode="bilinear", align_corners=False)  # (B, T, Y, X)
+        return out.reshape(*lead, *out.shape[1:])
+
+
+class _Value(nn.Module):
+    def __init__(self, n: int) -> None:
+        super().__init__()
+        self.v = nn.Sequential(nn.Linear(n, 256), nn.ReLU(), nn.Linear(256, 1))
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        return self.v(h)
+
+
+def build_actor_critic(cfg: PolicyConfig, grid: ActionGrid, view: View, action_spec=None) -> ActorValueOperator:
+    """The actor-critic as an ``ActorValueOperator`` (shared trunk, policy head, value head).
+
+    ``get_policy_operator()`` samples ``action`` (and ``action_log_prob``);
+    ``get_value_operator()`` writes ``state_value``.
+    """
+    size = view.size
+    if cfg.name == "paper":
+        common = TensorDictModule(PaperTrunk(cfg, size), in_keys=["observation"], out_keys=["hidden"])
+        head = TensorDictModule(PaperHeads(cfg.hidden, grid), in_keys=["hidden"], out_keys=["logits_x", "logits_y", "logits_t"])
+        actor = ProbabilisticActor(
+            head, in_keys=["logits_x", "logits_y", "logits_t"], out_keys=["action"], spec=action_spec,
+            distribution_class=FactorisedCategorical, return_log_prob=True,
+        )
+        value = ValueOperator(_Value(cfg.hidden), in_keys=["hidden"])
+    else:
+        trunk = SpatialTrunk(cfg, size).to(memory_format=torch.channels_last)
+        common = TensorDictModule(trunk, in_keys=["observation"], out_keys=["features", "hidden"])
+        head = TensorDictModule(SpatialHead(trunk.out_channels, grid, view), in_keys=["features"], out_keys=["logits"])
+        actor = ProbabilisticActor(
+            head, in_keys=["logits"], out_keys=["action"], spec=action_spec,
+            distribution_class=GridCategorical, return_log_prob=True,
+        )
+        value = ValueOperator(_Value(cfg.hidden), in_keys=["hidden"])
+    return ActorValueOperator(common, actor, value)
+
+
+def count_parameters(module: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in module.parameters())

@@ -1,0 +1,1 @@
+"""Loggers: the rerun logger (a TorchRL logger) and the bench's episode recorder."""

@@ -1,0 +1,1 @@
+"""Simulation: the MJCF scene, batched MuJoCo worlds, the UR5e (kinematics, robot, executor), MuJoCo rendering."""

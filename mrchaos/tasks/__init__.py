@@ -1,0 +1,1 @@
+"""Tasks: chaos objects, the target sampler and the task presets (tangram, cutlery, soda) with their goals."""

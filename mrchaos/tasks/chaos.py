@@ -1,0 +1,238 @@
+"""Chaos objects: random target assemblies, the only thing the policy trains on.
+
+Two generators, as in MRChaos:
+
+* ``scatter``: every piece at a uniformly random pose, no two overlapping, all
+  inside the camera view (rejection sampling, vectorised over the batch);
+* ``attract``: a scatter, then every piece is pulled toward one point until it
+  touches the others, giving compact, touching, non-overlapping clusters. The pull
+  is a kinematic relaxation: a piece moves toward the point (or slides along the
+  axes when blocked) only if the move keeps it clear of every other piece, and the
+  step halves when nothing can move, down to ``contact_gap``.
+
+A :class:`ChaosCache` stores pre-generated objects so a training run draws them
+instead of paying the generation cost every episode.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mrchaos.core.geometry import convex_penetration, rigid_transform
+from mrchaos.core.raster import View
+from mrchaos.figures.pieces import PieceSet
+
+__all__ = ["ChaosConfig", "scatter", "attract", "generate", "ChaosCache", "MODES"]
+
+MODES = ("scatter", "attract")
+
+
+@dataclass(frozen=True)
+class ChaosConfig:
+    """How random objects are drawn.
+
+    Attributes:
+        mode: "scatter", "attract" or "mix" (each object attract with ``attract_fraction``).
+        attract_fraction: share of attract objects under "mix" (the paper uses half).
+        workspace: piece centroids are drawn in [-workspace, workspace]^2 (m).
+        margin: every vertex stays this far (m) inside the camera view, so the whole object is seen.
+        angle_step: rotations are multiples of this (rad); 0 draws continuous angles.
+            The default matches the action grid's 45 degrees.
+        contact_gap: the attraction stops when no piece can move this far (m).
+        max_tries: rejection-sampling rounds per piece before giving up.
+    """
+
+    mode: str = "mix"
+    attract_fraction: float = 0.5
+    workspace: float = 0.10
+    margin: float = 0.005
+    angle_step: float = math.pi / 4
+    contact_gap: float = 2e-4
+    max_tries: int = 200
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES + ("mix",):
+            raise ValueError(f"chaos mode must be one of {MODES + ('mix',)}, got {self.mode!r}")
+        if not 0.0 <= self.attract_fraction <= 1.0:
+            raise ValueError(f"attract_fraction must be in [0, 1], got {self.attract_fraction}")
+
+    def bound(self, view: View) -> float:
+        """Largest |x| or |y| (m) a vertex may reach in ``view``."""
+        return view.extent / 2 - self.margin
+
+
+def _draw_angles(rng: np.random.Generator, shape: tuple[int, ...], step: float) -> np.ndarray:
+    if step <= 0:
+        return rng.uniform(-math.pi, math.pi, shape)
+    n = max(1, int(round(2 * math.pi / step)))
+    return rng.integers(0, n, shape) * (2 * math.pi / n) - math.pi
+
+
+def scatter(piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosConfig = ChaosConfig(),
+            view: View = View()) -> np.ndarray:
+    """(n, P, 3) poses: pieces at uniformly random poses, non-overlapping, inside the view."""
+    parts = _piece_parts(piece_set)  # (P, K, V, 2)
+    p = len(piece_set)
+    poses = np.zeros((n, p, 3))
+    polys = np.zeros((n,) + parts.shape)
+    bound = cfg.bound(view)
+    for k in range(p):
+        todo = np.arange(n)
+        for _ in range(cfg.max_tries):
+            m = len(todo)
+            cand = np.concatenate(
+                [rng.uniform(-cfg.workspace, cfg.workspace, (m, 2)), _draw_angles(rng, (m, 1), cfg.angle_step)], 1
+            )
+            poly = rigid_transform(parts[k], cand[:, None])  # (m, K, V, 2)
+            ok = np.abs(poly).max((1, 2, 3)) <= bound
+            if k > 0:
+                ok &= _clear(poly, polys[todo, :k])
+            poses[todo[ok], k] = cand[ok]
+            polys[todo[ok], k] = poly[ok]
+            todo = todo[~ok]
+            if len(todo) == 0:
+                break
+        if len(todo):
+            raise RuntimeError(
+                f"scatter: could not place {piece_set.names[k]} in {len(todo)} objects after "
+                f"{cfg.max_tries} tries; enlarge the workspace"
+            )
+    return poses
+
+
+def attract(
+    piece_set: PieceSet,
+    n: int,
+    rng: np.random.Generator,
+    cfg: ChaosConfig = ChaosConfig(),
+    view: View = View(),
+    start: np.ndarray | None = None,
+) -> np.ndarray:
+    """(n, P, 3) poses: a scatter pulled together into a touching cluster, then centred."""
+    parts = _piece_parts(piece_set)
+    p = len(piece_set)
+    poses = scatter(piece_set, n, rng, cfg, view) if start is None else np.array(start, dtype=np.float64)
+    # The point of attraction: a random point near the centre, so clusters are not all alike.
+    centre = rng.uniform(-0.02, 0.02, (n, 1, 2))
+    step = np.full(n, 0.01)
+    polys = rigid_transform(parts[None], poses[:, :, None])  # (n, P, K, V, 2)
+    active = np.ones(n, dtype=bool)
+    while active.any():
+        moved = np.zeros(n, dtype=bool)
+        for k in rng.permutation(p):
+            rows = np.flatnonzero(active)
+            to = centre[rows, 0] - poses[rows, k, :2]
+            dist = np.linalg.norm(to, axis=1)
+            unit = to / np.maximum(dist, 1e-12)[:, None]
+            s = np.minimum(step[rows], dist)
+            others = np.delete(polys[rows], k, axis=1)
+            done = np.zeros(len(rows), dtype=bool)
+            progress = np.zeros(len(rows))
+            # Straight toward the point, else slide along x, else along y.
+            for direction in (unit, unit * [1.0, 0.0], unit * [0.0, 1.0]):
+                d = direction * s[:, None]
+                cand = polys[rows, k] + d[:, None, None, :]
+                ok = ~done & (np.linalg.norm(d, axis=1) > 1e-9)
+                ok &= _clear(cand, others)
+                r = rows[ok]
+                poses[r, k, :2] += d[ok]
+                polys[r, k] = cand[ok]
+                progress[ok] = dist[ok] - np.linalg.norm(centre[r, 0] - poses[r, k, :2], axis=1)
+                done |= ok
+            # Only real progress keeps the step: tiny slides back and forth must not stall the halving.
+            moved[rows[progress > 0.25 * step[rows]]] = True
+        stuck = active & ~moved
+        step[stuck] /= 2
+        active &= step >= cfg.contact_gap
+    # Centre each cluster on its bounding box.
+    lo, hi = polys.min((1, 2, 3)), polys.max((1, 2, 3))
+    poses[..., :2] -= ((lo + hi) / 2)[:, None, :]
+    return poses
+
+
+def _piece_parts(piece_set: PieceSet) -> np.ndarray:
+    """(P, K, V, 2) convex parts of every piece."""
+    parts = piece_set.padded_parts()
+    return parts.reshape(len(piece_set), piece_set.parts_per_piece, *parts.shape[1:])
+
+
+def _clear(poly: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """(m,) True where parts ``poly`` (m, K, V, 2) overlap none of ``others`` (m, j, K, V, 2)."""
+    depth = convex_penetration(poly[:, None, :, None], others[:, :, None])  # (m, j, K, K)
+    return (depth <= 0).all((1, 2, 3))
+
+
+def generate(
+    piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosConfig = ChaosConfig(), view: View = View()
+) -> tuple[np.ndarray, np.ndarray]:
+    """(n, P, 3) poses and (n,) int8 mode index (0 scatter, 1 attract) drawn as ``cfg`` says, inside ``view``."""
+    if cfg.mode == "scatter":
+        modes = np.zeros(n, dtype=np.int8)
+    elif cfg.mode == "attract":
+        modes = np.ones(n, dtype=np.int8)
+    else:
+        modes = (rng.random(n) < cfg.attract_fraction).astype(np.int8)
+    poses = np.zeros((n, len(piece_set), 3))
+    for m, fn in enumerate((scatter, attract)):
+        idx = np.flatnonzero(modes == m)
+        if len(idx):
+            poses[idx] = fn(piece_set, len(idx), rng, cfg, view)
+    return poses, modes
+
+
+class ChaosCache:
+    """Pre-generated chaos objects of one piece set, saved as ``.npz``.
+
+    Args:
+        poses: (N, P, 3) target poses.
+        modes: (N,) generator index per object (0 scatter, 1 attract).
+        piece_set: name of the piece set the poses belong to.
+    """
+
+    def __init__(self, poses: np.ndarray, modes: np.ndarray, piece_set: str) -> None:
+        self.poses = np.asarray(poses, dtype=np.float64)
+        self.modes = np.asarray(modes, dtype=np.int8)
+        self.piece_set = piece_set
+        if self.poses.ndim != 3 or self.poses.shape[-1] != 3 or len(self.modes) != len(self.poses):
+            raise ValueError(f"chaos cache: inconsistent shapes {self.poses.shape} / {self.modes.shape}")
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    @classmethod
+    def build(cls, piece_set: PieceSet, n: int, seed: int, cfg: ChaosConfig = ChaosConfig(),
+              view: View = View()) -> ChaosCache:
+        """Generate ``n`` objects with a seeded generator."""
+        poses, modes = generate(piece_set, n, np.random.default_rng(seed), cfg, view)
+        return cls(poses, modes, piece_set.name)
+
+    def save(self, path: str | Path) -> None:
+        """Write atomically."""
+        from mrchaos.core.atomic import write_atomic
+
+        buf = io.BytesIO()
+        np.savez_compressed(buf, poses=self.poses.astype(np.float32), modes=self.modes, piece_set=self.piece_set)
+        write_atomic(path, buf.getvalue())
+
+    @classmethod
+    def load(cls, path: str | Path, piece_set: PieceSet | None = None) -> ChaosCache:
+        """Read a cache; a corrupt file or another piece set's cache raises ValueError naming the file."""
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                cache = cls(z["poses"], z["modes"], str(z["piece_set"]))
+        except FileNotFoundError:
+            raise ValueError(f"{path}: no such chaos cache") from None
+        except (OSError, KeyError, ValueError) as e:
+            raise ValueError(f"{path}: not a valid chaos cache ({e})") from None
+        if piece_set is not None and (cache.piece_set != piece_set.name or cache.poses.shape[1] != len(piece_set)):
+            raise ValueError(f"{path}: cache is for piece set {cache.piece_set!r}, not {piece_set.name!r}")
+        return cache
+
+    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """(n, P, 3) poses drawn uniformly with replacement."""
+        return self.poses[rng.integers(0, len(self), n)]
