@@ -38,15 +38,21 @@ def _report_rejected(sets: list[FigureSet]) -> int:
     return n
 
 
+def _valid_figures(paths: list[str] | None, purpose: str) -> list:
+    """The valid figures of ``paths`` (rejected ones reported); an error when there are none."""
+    sets = _load(paths)
+    _report_rejected(sets)
+    figs = [f for fs in sets for f in fs.figures]
+    if not figs:
+        raise MrchaosError(f"no valid figures to {purpose}")
+    return figs
+
+
 def cmd_sheet(args: argparse.Namespace) -> int:
     from mrchaos.figures.families import FamilyRule, family_of
     from mrchaos.figures.sheet import figure_sheet, save_png
 
-    sets = _load(args.figures)
-    _report_rejected(sets)
-    figs = [f for fs in sets for f in fs.figures]
-    if not figs:
-        raise MrchaosError("no valid figures to draw")
+    figs = _valid_figures(args.figures, "draw")
     rule = FamilyRule()
     for f in figs:
         f.family = family_of(f, rule)
@@ -85,11 +91,7 @@ def cmd_families(args: argparse.Namespace) -> int:
 def cmd_convert(args: argparse.Namespace) -> int:
     from mrchaos.figures.formats import save_figures
 
-    sets = _load(args.figures)
-    _report_rejected(sets)
-    figs = [f for fs in sets for f in fs.figures]
-    if not figs:
-        raise MrchaosError("no valid figures to write")
+    figs = _valid_figures(args.figures, "write")
     save_figures(figs, args.out, name=args.name or Path(args.out).stem)
     print(f"wrote {args.out}: {len(figs)} figures")
     return 0

@@ -168,8 +168,8 @@ class TangramEnv(EnvBase):
         self._silhouette = torch.zeros((n, self.view.size, self.view.size), dtype=torch.uint8)
         self.next_piece = np.zeros(n, dtype=np.int64)
         self.end_piece = np.full(n, p, dtype=np.int64)
-        self.task_source = np.zeros(n, dtype=np.int64)
-        self.task_figure = np.full(n, -1, dtype=np.int64)
+        self.target_source = np.zeros(n, dtype=np.int64)
+        self.target_figure = np.full(n, -1, dtype=np.int64)
         self._done = torch.zeros((n, 1), dtype=torch.bool)
         # Summed slot coverage of the placed pieces at the last observation (exclusive slots).
         self._held = torch.zeros(n)
@@ -264,8 +264,8 @@ class TangramEnv(EnvBase):
 
     def _reset_rows(self, rows: np.ndarray, tasks: TargetBatch, k: np.ndarray, horizon: np.ndarray) -> None:
         self._target[rows] = tasks.poses
-        self.task_source[rows] = tasks.source
-        self.task_figure[rows] = tasks.figure
+        self.target_source[rows] = tasks.source
+        self.target_figure[rows] = tasks.figure
         ps = self.piece_set
         ids = rasterize(ps.footprints(tasks.poses), self.view, parts=ps.part_piece if ps.parts_per_piece > 1 else None).ids
         self._target_ids[rows] = ids
