@@ -262,46 +262,60 @@ class Bench:
         self.episodes: dict[tuple[str, str], EpisodeResults] = {}
         for spec in specs:
             per_fam = {}
-            envs: dict[str, tuple] = {}
-            for fam, groups in self.targets.items():
-                parts = []
-                for set_name, poses, ids in groups:
-                    if set_name not in envs:
-                        env = self.make_env(spec, set_name)
-                        renderer = None
-                        if self.scenes:
-                            from mrchaos.sim.animation import SceneRenderer
-
-                            renderer = SceneRenderer(env.scene_model)
-                            env.film(self.scene_fps)
-                        envs[set_name] = (env, self.actor(spec, env), renderer)
-                    env, act, renderer = envs[set_name]
-                    film = self._filmer(env, renderer, spec.name, fam, ids, record) if renderer else None
-                    res = evaluate(env, poses, act, record_steps=record is not None, perturb_after=self.perturb_after,
-                                   perturb_distance=self.perturb_distance, on_step=film)
-                    if record is not None:
-                        record.log_episodes(spec.name, fam, ids, res, env.piece_set.names)
-                    parts.append(res)
-                res = concat_results(parts)
-                self.episodes[(spec.name, fam)] = res
-                per_fam[fam] = {m: summarise(getattr(res, m)) for m in METRICS}
-                if self.placement == "robot":
-                    # Failures per placement: each episode places every piece once.
-                    per_fam[fam]["robot_failures"] = {k: float(v.mean() / len(self.piece_set))
-                                                      for k, v in res.failures.items()}
-                if res.perturbation is not None:
-                    per_fam[fam]["perturbation"] = {k: summarise(v) for k, v in res.perturbation.items()}
-                results["counts"][fam] = len(res.rela)
+            envs: dict[str, tuple] = {}  # one env, actor and renderer per piece set, built when first needed
+            try:
+                for fam, groups in self.targets.items():
+                    parts = []
+                    for set_name, poses, ids in groups:
+                        if set_name not in envs:
+                            envs[set_name] = self._policy_env(spec, set_name)
+                        parts.append(self._episodes(spec, fam, ids, poses, *envs[set_name], record))
+                    res = concat_results(parts)
+                    self.episodes[(spec.name, fam)] = res
+                    per_fam[fam] = self.summary(res)
+                    results["counts"][fam] = len(res.rela)
+            finally:
+                for env, _, renderer in envs.values():
+                    if renderer is not None:
+                        renderer.close()
+                    env.close()
             results["policies"][spec.name] = {"label": spec.label, "families": per_fam}
-            for env, _, renderer in envs.values():
-                if renderer is not None:
-                    renderer.close()
-                env.close()
         results["task"] = self.task
         results["placement"] = self.placement
         if self.perturb_after is not None:
             results["perturb"] = {"after_step": self.perturb_after, "distance_m": self.perturb_distance}
         return results
+
+    def _policy_env(self, spec: PolicySpec, set_name: str) -> tuple:
+        """The env of one piece set for a policy, its actor and (when filming) a scene renderer."""
+        env = self.make_env(spec, set_name)
+        renderer = None
+        if self.scenes:
+            from mrchaos.sim.animation import SceneRenderer
+
+            renderer = SceneRenderer(env.scene_model)
+            env.film(self.scene_fps)
+        return env, self.actor(spec, env), renderer
+
+    def _episodes(self, spec: PolicySpec, fam: str, ids: list[str], poses: np.ndarray, env: TangramEnv, act,
+                  renderer, record) -> EpisodeResults:
+        """One episode per target of a group, filmed and recorded as asked."""
+        film = self._filmer(env, renderer, spec.name, fam, ids, record) if renderer else None
+        res = evaluate(env, poses, act, record_steps=record is not None, perturb_after=self.perturb_after,
+                       perturb_distance=self.perturb_distance, on_step=film)
+        if record is not None:
+            record.log_episodes(spec.name, fam, ids, res, env.piece_set.names)
+        return res
+
+    def summary(self, res: EpisodeResults) -> dict:
+        """A family's summaries: every metric, robot failures per placement, the push's effect."""
+        out: dict = {m: summarise(getattr(res, m)) for m in METRICS}
+        if self.placement == "robot":
+            # Failures per placement: each episode places every piece once.
+            out["robot_failures"] = {k: float(v.mean() / len(self.piece_set)) for k, v in res.failures.items()}
+        if res.perturbation is not None:
+            out["perturbation"] = {k: summarise(v) for k, v in res.perturbation.items()}
+        return out
 
     def _filmer(self, env: TangramEnv, renderer, policy: str, family: str, ids: list[str], record):
         """An ``on_step`` hook that renders the robot's snapshots of the first ``scenes`` episodes."""
