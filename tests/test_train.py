@@ -1,4 +1,5 @@
 import csv
+import math
 import os
 import signal
 import subprocess
@@ -166,10 +167,10 @@ def test_behaviour_cloning_smoke(tmp_path, capsys):
     rc = train_main([str(ROOT / "conf" / "bc.yaml"), f"runs_dir={tmp_path}", "bc.rotations=1", "bc.shifts=0",
                      "bc.epochs=3", "env.num_worlds=32", "policy.channels=[8,16,16]", "policy.hidden=64"])
     assert rc == 0
-    assert "behaviour cloning on" in capsys.readouterr().out
-    rows = (tmp_path / "bc" / "metrics.csv").read_text().splitlines()[1:]
-    nll = [float(r.split(",")[1]) for r in rows]
-    assert nll[-1] < nll[0]
+    assert "supervised on" in capsys.readouterr().out
+    with open(tmp_path / "bc" / "metrics.csv") as f:
+        nll = [float(r["loss"]) for r in csv.DictReader(f)]
+    assert len(nll) == 3 and nll[-1] < nll[0]
     st = load_checkpoint(tmp_path / "bc" / "checkpoints" / "last.pt")
     assert st["kind"] == "mrchaos-policy" and st["policy"]["name"] == "spatial"  # conf/bc.yaml: the default net
     from mrchaos.bench.benchmark import resolve_policy
@@ -184,3 +185,23 @@ def test_multisync_collector_smoke(tmp_path):
     assert rc == 0
     rows = _rows(tmp_path / "smoke")
     assert len(rows) == 6 and {r["stage"] for r in rows} <= {"1", "2"}
+
+
+def test_bf16_first_minibatch_ratios_are_one(tmp_path):
+    """Under bf16 autocast the update recomputes the collector's log-probabilities: ratio 1 before any step."""
+    from mrchaos.learn.precision import autocast
+    from mrchaos.learn.ppo import Trainer
+
+    cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "precision=bf16", "logger.rerun=false", "logger.progress=false"])
+    trainer = Trainer(cfg, tmp_path / "bf16")
+    data = next(iter(trainer.collector))
+    trainer.collector.shutdown()
+    assert data["action_log_prob"].dtype == torch.float32
+    with torch.no_grad(), autocast("bf16"):
+        dist = trainer.policy.get_dist(data.reshape(-1)[: cfg.loss.minibatch_size].clone())
+        new = dist.log_prob(data.reshape(-1)[: cfg.loss.minibatch_size]["action"])
+    ratio = (new - data.reshape(-1)[: cfg.loss.minibatch_size]["action_log_prob"]).exp()
+    assert (ratio - 1).abs().max() < 1e-3, float((ratio - 1).abs().max())
+    # And the update runs and gives finite fp32 losses.
+    losses = trainer.update(data)
+    assert all(math.isfinite(v) for v in losses.values())

@@ -48,9 +48,9 @@ def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             from mrchaos.learn.bc import train_bc
 
             res = train_bc(cfg, run_dir)
-            print(f"{run_dir}: behaviour cloning on {res['samples']} demonstration steps from "
-                  f"{res['figures']} figures, final NLL {res['nll']:.3f}; greedy on {res['n']} Random objects: "
-                  f"Rela {res['rela']:.3f} Final {res['final']:.3f}")
+            print(f"{run_dir}: supervised on {res['samples']} labelled steps ({res['what']}), final loss "
+                  f"{res['loss']:.3f}; greedy on {res['n']} Random objects: Rela {res['rela']:.3f} "
+                  f"Final {res['final']:.3f}")
             return 0
         trainer = Trainer(cfg, run_dir)
     result = trainer.run()

@@ -34,6 +34,7 @@ from torchrl.envs import EnvBase
 
 from mrchaos.core.raster import Raster, View, rasterize
 from mrchaos.env.actions import ActionGrid
+from mrchaos.env.dense import CounterfactualGrid
 from mrchaos.env.metrics import (
     best_slot_coverage,
     exclusive_slot_coverage,
@@ -174,6 +175,7 @@ class TangramEnv(EnvBase):
         # Summed slot coverage of the placed pieces at the last observation (exclusive slots).
         self._held = torch.zeros(n)
         self._timings = dict.fromkeys(TIMERS, 0.0)
+        self._counterfactual: CounterfactualGrid | None = None  # built on first use
         self._make_specs()
         self._set_seed(seed)
 
@@ -352,6 +354,16 @@ class TangramEnv(EnvBase):
         """The next piece of every world and its exact target pose: the solution, for oracles and tests."""
         piece = np.minimum(self.next_piece, self.num_pieces - 1)
         return OracleTargets(piece, self._target[np.arange(self.cfg.num_worlds), piece].copy())
+
+    def counterfactual(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """What placing every world's next piece at each grid action would earn, if it touched
+        nothing, and how much of that footprint would lie on placed pieces: (N, T, Y, X) coverage
+        and overlap in [0, 1] (see :mod:`mrchaos.env.dense`). Privileged, like :meth:`oracle_targets`."""
+        if self._counterfactual is None:
+            self._counterfactual = CounterfactualGrid(self.piece_set, self.grid)
+        piece = np.minimum(self.next_piece, self.num_pieces - 1)
+        return self._counterfactual.coverage(piece, self._target, self._worlds.footprint, self._worlds.placed,
+                                             self._twins)
 
     @property
     def worlds(self) -> Worlds:

@@ -1,11 +1,15 @@
-"""Behaviour cloning, the paper's baseline: supervised imitation of disassembled human figures.
+"""Supervised learning from the simulator's answers: the paper's BC baseline, BC on chaos, dense targets, DAgger.
 
-A demonstration is a human figure taken apart in the simulator and put back
-together piece by piece: every state along the way (silhouette plus the pieces
-already in place) paired with the grid action that puts the next piece on its
-target. Figures are rotated by multiples of 45 degrees and shifted to multiply
-the data. The network is the same actor as PPO's; the loss is the negative
-log-likelihood of the demonstrated action.
+A demonstration is a target assembled in the simulator piece by piece: every state along
+the way (silhouette plus the pieces already in place) with a label. The targets are
+human figures rotated and shifted (``bc.source: figures``, the paper's baseline) or
+chaos objects (``source: chaos``, the objects RL trains on). The label is the oracle's
+grid action (``bc.targets: oracle``, negative log-likelihood) or, beyond the paper, the
+counterfactual coverage of all 20,808 actions (``targets: dense``, a cross-entropy against
+softmax(coverage / temperature), actions that land on placed pieces masked), which
+grades every action where the oracle names one. DAgger rounds (``bc.dagger_rounds``) let
+the policy assemble new chaos objects itself and label the states it reaches, so that
+its own compounding errors are learnt from. The network is the same actor as PPO's.
 """
 
 from __future__ import annotations
@@ -29,12 +33,16 @@ from mrchaos.env.tangram import TangramEnv
 from mrchaos.figures.figure import Figure
 from mrchaos.figures.formats import load_figures
 from mrchaos.figures.library import builtin_figures
+from mrchaos.figures.pieces import get_piece_set
 from mrchaos.learn.checkpoint import policy_header, save_checkpoint
 from mrchaos.learn.config import TrainConfig, config_to_dict
-from mrchaos.learn.evaluate import evaluate, evaluate_random
+from mrchaos.learn.evaluate import evaluate, evaluate_random, policy_actor
 from mrchaos.learn.policy import build_actor_critic
+from mrchaos.learn.precision import autocast
+from mrchaos.tasks.chaos import generate
+from mrchaos.tasks.sampler import MixConfig
 
-__all__ = ["augment", "demonstrations", "train_bc"]
+__all__ = ["augment", "demonstrations", "supervised_loss", "train_bc"]
 
 log = logging.getLogger("mrchaos.learn.bc")
 
@@ -61,60 +69,127 @@ def augment(figures: list[Figure], rotations: int, shifts: int, max_shift: float
     return np.stack(out)
 
 
-def demonstrations(env: TangramEnv, targets: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
-    """Observations (M*P, 2, H, W) uint8 and oracle grid actions (M*P, 3) along each assembly."""
-    res = evaluate(env, targets, lambda e, td: oracle_actions(e), record_steps=True)
-    obs = torch.cat([torch.from_numpy(s["observation"]) for s in res.steps])
-    acts = torch.cat([torch.from_numpy(s["action"]) for s in res.steps])
-    return obs, acts
+#: Dense labels are stored as uint8: coverage * 254, and 255 where physics decides (masked).
+_MASKED = 255
+
+
+def _dense_label(env: TangramEnv, overlap_limit: float) -> torch.Tensor:
+    """(N, T, Y, X) uint8 counterfactual coverage of every action, 255 where the footprint overlaps."""
+    cov, overlap = env.counterfactual()
+    q = (cov * 254).round().to(torch.uint8)
+    q[overlap > overlap_limit] = _MASKED
+    return q
+
+
+def demonstrations(env: TangramEnv, targets: np.ndarray, actor=None, dense: bool = False,
+                   overlap_limit: float = 0.02) -> tuple[torch.Tensor, torch.Tensor]:
+    """Observations (M*P, 2, H, W) uint8 along each assembly and their labels.
+
+    The assemblies are the oracle's, or ``actor``'s (DAgger: the states a policy reaches);
+    the labels are the oracle's grid actions (M*P, 3), or with ``dense`` the counterfactual
+    coverage of every grid action (M*P, T, Y, X) uint8 (see :func:`_dense_label`).
+    """
+    obs, labels = [], []
+
+    def act(e: TangramEnv, td: TensorDict) -> torch.Tensor:
+        # Label the state before acting on it; padded worlds of a last chunk are labelled too
+        # (they repeat a real target) and are dropped below with the rest of the padding.
+        obs.append(td["observation"].clone())
+        labels.append(_dense_label(e, overlap_limit) if dense else oracle_actions(e))
+        return oracle_actions(e) if actor is None else actor(e, td)
+
+    evaluate(env, targets, act)
+    nw, n, p = env.batch_size[0], len(targets), env.num_pieces
+    keep = [min(nw, n - start) for start in range(0, n, nw) for _ in range(p)]
+    return (torch.cat([o[:k] for o, k in zip(obs, keep)]), torch.cat([lb[:k] for lb, k in zip(labels, keep)]))
+
+
+def _targets(cfg: TrainConfig, rng: np.random.Generator, n_chaos: int, seed: int) -> tuple[np.ndarray, str]:
+    """Target poses to demonstrate and a description: augmented figures, or chaos objects."""
+    if cfg.bc.source == "chaos":
+        poses = generate(get_piece_set(cfg.env.piece_set), n_chaos, np.random.default_rng(seed), cfg.task.chaos,
+                         cfg.env.view)[0]
+        return poses, f"{n_chaos} chaos objects (seed {seed})"
+    figs: list[Figure] = []
+    for src in cfg.bc.figure_sets:
+        figs += builtin_figures() if src == "builtin" else load_figures(src).figures
+    figs = [f for f in figs if not f.has_mirrored]
+    poses = augment(figs, cfg.bc.rotations, cfg.bc.shifts, cfg.bc.max_shift, rng, cfg.task.chaos.bound(cfg.env.view))
+    return poses, f"{len(figs)} figures ({len(poses)} augmented)"
+
+
+def supervised_loss(policy, obs: torch.Tensor, labels: torch.Tensor, dense: bool, temperature: float) -> torch.Tensor:
+    """Negative log-likelihood of oracle actions, or the cross-entropy against softmax(coverage / T)."""
+    dist = policy.get_dist(TensorDict(observation=obs, batch_size=[len(obs)]))
+    if not dense:
+        return -dist.log_prob(labels).mean()
+    q = labels.flatten(1)
+    cov = torch.where(q == _MASKED, torch.full_like(q, 0, dtype=torch.float32), q.float() / 254)
+    logits = torch.where(q == _MASKED, torch.full_like(cov, -torch.inf), cov / temperature)
+    target = torch.softmax(logits, -1)
+    return -(target * dist.logits).sum(-1).mean()
 
 
 def train_bc(cfg: TrainConfig, run_dir: Path) -> dict:
-    """Train the configured network by behaviour cloning; writes a checkpoint like PPO's."""
+    """Train the configured network by supervision (oracle actions or dense targets, optionally
+    with DAgger rounds); writes a checkpoint like PPO's."""
     run_dir = Path(run_dir)
     (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
     write_atomic(run_dir / "config.yaml", yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
+    bc = cfg.bc
+    dense = bc.targets == "dense"
     rng = np.random.default_rng(cfg.seed)
-    figs: list[Figure] = []
-    for src in cfg.bc.figure_sets:
-        figs += builtin_figures() if src == "builtin" else load_figures(src).figures
-    figs = [f for f in figs if not f.has_mirrored]
-    targets = augment(figs, cfg.bc.rotations, cfg.bc.shifts, cfg.bc.max_shift, rng, cfg.task.chaos.bound(cfg.env.view))
-    env = TangramEnv(dataclasses.replace(cfg.env_config(), num_worlds=min(128, len(targets))), seed=cfg.seed)
+    targets, what = _targets(cfg, rng, bc.objects, bc.seed)
+    eval_cfg = dataclasses.replace(cfg.env_config(), task=dataclasses.replace(
+        cfg.task, mix=MixConfig(chaos=1.0, cache=0.0, figures=0.0)))  # targets are given: no cache
+    env = TangramEnv(dataclasses.replace(eval_cfg, num_worlds=min(128, len(targets))), seed=cfg.seed)
     t0 = time.perf_counter()
-    obs, acts = demonstrations(env, targets)
-    log.info("%d demonstrations from %d figures (%d augmented) in %.0f s", len(obs), len(figs), len(targets),
-             time.perf_counter() - t0)
+    obs, labels = demonstrations(env, targets, dense=dense, overlap_limit=bc.overlap_limit)
+    log.info("%d demonstration steps from %s in %.0f s", len(obs), what, time.perf_counter() - t0)
     ac = build_actor_critic(cfg.policy, env.grid, env.view, env.action_spec)
     policy = ac.get_policy_operator()
     opt = torch.optim.Adam(ac.parameters(), lr=cfg.optim.lr)
-    n = len(obs)
-    rows = []
-    for epoch in range(cfg.bc.epochs):
-        perm = torch.randperm(n)
-        total, count = 0.0, 0
-        for i in range(0, n, cfg.bc.minibatch_size):
-            idx = perm[i : i + cfg.bc.minibatch_size]
-            td = TensorDict(observation=obs[idx], batch_size=[len(idx)])
-            dist = policy.get_dist(td)
-            loss = -dist.log_prob(acts[idx]).mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(ac.parameters(), cfg.optim.max_grad_norm)
-            opt.step()
-            total += loss.item() * len(idx)
-            count += len(idx)
-        rows.append({"epoch": epoch + 1, "nll": total / count})
-        log.info("bc epoch %d: nll %.3f", epoch + 1, total / count)
+    rows: list[dict] = []
+
+    def fit(epochs: int, round_: int) -> None:
+        n = len(obs)
+        for _ in range(epochs):
+            perm = torch.randperm(n)
+            total, count = 0.0, 0
+            for i in range(0, n, bc.minibatch_size):
+                idx = perm[i : i + bc.minibatch_size]
+                with autocast(cfg.precision, cfg.device):
+                    loss = supervised_loss(policy, obs[idx], labels[idx], dense, bc.temperature)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(ac.parameters(), cfg.optim.max_grad_norm)
+                opt.step()
+                total += loss.item() * len(idx)
+                count += len(idx)
+            rows.append({"epoch": len(rows) + 1, "round": round_, "samples": n, "loss": total / count,
+                         "minutes": (time.perf_counter() - t0) / 60})
+            log.info("bc epoch %d (round %d, %d samples): loss %.4f", len(rows), round_, n, total / count)
+
+    fit(bc.epochs, 0)
+    greedy = policy_actor(policy)
+    for r in range(1, bc.dagger_rounds + 1):
+        new, what_r = _targets(cfg, rng, bc.dagger_objects, bc.seed + r)
+        o, lb = demonstrations(env, new, actor=greedy, dense=dense, overlap_limit=bc.overlap_limit)
+        obs, labels = torch.cat([obs, o]), torch.cat([labels, lb])
+        log.info("DAgger round %d: %d states of the policy's own assemblies of %s", r, len(o), what_r)
+        fit(bc.dagger_epochs, r)
     state = {
         **policy_header(env, config_to_dict(cfg.policy)), "config": config_to_dict(cfg), "model": ac.state_dict(),
-        "curriculum": {"stage": 0, "switched_at": -1}, "iteration": cfg.bc.epochs, "frames": n,
-        "episodes": len(targets), "minutes": (time.perf_counter() - t0) / 60,
+        "curriculum": {"stage": 0, "switched_at": -1}, "iteration": len(rows), "frames": len(obs),
+        "episodes": len(targets) + bc.dagger_rounds * bc.dagger_objects, "minutes": (time.perf_counter() - t0) / 60,
     }
     save_checkpoint(run_dir / "checkpoints" / "last.pt", state)
-    write_atomic(run_dir / "metrics.csv", "epoch,nll\n" + "".join(f"{r['epoch']},{r['nll']:.6f}\n" for r in rows))
+    fields = ["epoch", "round", "samples", "loss", "minutes"]
+    write_atomic(run_dir / "metrics.csv", ",".join(fields) + "\n"
+                 + "".join(",".join(f"{r[k]:.6f}" if isinstance(r[k], float) else str(r[k]) for k in fields) + "\n"
+                           for r in rows))
     ev = evaluate_random(policy, cfg.env_config(), n=100)
     write_atomic(run_dir / "eval.json", json.dumps(ev, indent=1) + "\n")
-    return {"samples": n, "figures": len(figs), "nll": rows[-1]["nll"] if rows else float("nan"), **ev}
+    return {"samples": len(obs), "what": what, "loss": rows[-1]["loss"] if rows else float("nan"), **ev}

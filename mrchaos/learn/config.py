@@ -21,6 +21,7 @@ import yaml
 from mrchaos.core.errors import MrchaosError
 from mrchaos.env.tangram import EnvConfig
 from mrchaos.learn.policy import PolicyConfig
+from mrchaos.learn.precision import PRECISIONS
 from mrchaos.tasks.presets import PRESETS, get_preset
 from mrchaos.tasks.sampler import TaskConfig
 
@@ -127,33 +128,66 @@ class CheckpointConfig:
 
 @dataclass
 class BCConfig:
-    """Behaviour-cloning data and optimisation.
+    """Supervised learning from the simulator's answers: behaviour cloning and dense targets.
 
     Attributes:
-        figure_sets: figures to demonstrate ("builtin" = the shipped library).
+        source: "figures" (the paper's BC: demonstrations of human figures, rotated and
+            shifted) or "chaos" (demonstrations of chaos objects, the objects RL trains on).
+        figure_sets: figures to demonstrate with ``source: figures`` ("builtin" = the library).
         rotations: rotate each figure by k * 360/rotations degrees, k < rotations.
         shifts: random shifts per rotation (plus the unshifted figure).
         max_shift: largest shift (m); figures that would leave the view are not shifted.
-        epochs: passes over the demonstrations.
+        objects: chaos objects demonstrated with ``source: chaos`` (drawn as ``task.chaos`` says).
+        targets: "oracle" (the demonstrated grid action, negative log-likelihood) or "dense"
+            (the counterfactual coverage of every grid action, a soft-target cross-entropy).
+        temperature: dense targets are softmax(coverage / temperature) over the actions.
+        overlap_limit: dense targets give no weight to actions whose footprint lies more than
+            this share on pieces already placed (physics decides those).
+        dagger_rounds: after the first fit, rounds in which the policy itself assembles new
+            chaos objects and the states it reaches are labelled and added (DAgger).
+        dagger_objects: chaos objects per DAgger round.
+        dagger_epochs: passes over the aggregated data after each round.
+        epochs: passes over the first demonstrations.
         minibatch_size: samples per gradient step.
+        seed: seed of the demonstrated chaos objects (each DAgger round adds one).
     """
 
+    source: str = "figures"
     figure_sets: list[str] = field(default_factory=lambda: ["builtin"])
     rotations: int = 8
     shifts: int = 3
     max_shift: float = 0.02
+    objects: int = 6000
+    targets: str = "oracle"
+    temperature: float = 0.05
+    overlap_limit: float = 0.02
+    dagger_rounds: int = 0
+    dagger_objects: int = 2000
+    dagger_epochs: int = 3
     epochs: int = 20
     minibatch_size: int = 256
+    seed: int = 778
+
+    def __post_init__(self) -> None:
+        if self.source not in ("figures", "chaos"):
+            raise ValueError(f"bc.source must be 'figures' or 'chaos', got {self.source!r}")
+        if self.targets not in ("oracle", "dense"):
+            raise ValueError(f"bc.targets must be 'oracle' or 'dense', got {self.targets!r}")
+        if self.temperature <= 0:
+            raise ValueError(f"bc.temperature must be > 0, got {self.temperature}")
 
 
 @dataclass
 class TrainConfig:
-    """A whole experiment: ``algo`` "ppo" (the method) or "bc" (behaviour cloning, the baseline)."""
+    """A whole experiment: ``algo`` "ppo" (the method) or "bc" (supervision: BC, dense targets, DAgger).
+
+    ``precision`` "bf16" runs the network under bfloat16 autocast (see :mod:`mrchaos.learn.precision`)."""
 
     name: str = "run"
     algo: str = "ppo"
     seed: int = 0
     device: str = "cpu"
+    precision: str = "fp32"
     threads: int = 2
     runs_dir: str = "runs"
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -170,6 +204,8 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.algo not in ("ppo", "bc"):
             raise ValueError(f"algo must be 'ppo' or 'bc', got {self.algo!r}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
 
     def env_config(self) -> EnvConfig:
         """The env config with the task group folded in."""

@@ -62,7 +62,7 @@ class FactorisedCategorical(Distribution):
     has_enumerate_support = False
 
     def __init__(self, logits_x: torch.Tensor, logits_y: torch.Tensor, logits_t: torch.Tensor) -> None:
-        self.parts = (Categorical(logits=logits_x), Categorical(logits=logits_y), Categorical(logits=logits_t))
+        self.parts = tuple(Categorical(logits=lg.float()) for lg in (logits_x, logits_y, logits_t))
         super().__init__(batch_shape=logits_x.shape[:-1], event_shape=torch.Size([3]), validate_args=False)
 
     @property
@@ -101,7 +101,7 @@ class GridCategorical(Distribution):
     def __init__(self, logits: torch.Tensor) -> None:
         # logits: (..., T, Y, X)
         self.grid_shape = logits.shape[-3:]
-        self.logits = torch.log_softmax(logits.flatten(-3), -1)
+        self.logits = torch.log_softmax(logits.flatten(-3).float(), -1)
         super().__init__(batch_shape=logits.shape[:-3], event_shape=torch.Size([3]), validate_args=False)
 
     @property
@@ -234,7 +234,8 @@ class _Value(nn.Module):
         self.v = nn.Sequential(nn.Linear(n, 256), nn.ReLU(), nn.Linear(256, 1))
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
-        return self.v(h)
+        # fp32 out of bf16 autocast: GAE and the critic loss sum these.
+        return self.v(h).float()
 
 
 def build_actor_critic(cfg: PolicyConfig, grid: ActionGrid, view: View, action_spec=None) -> ActorValueOperator:

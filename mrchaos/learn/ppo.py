@@ -41,11 +41,14 @@ from mrchaos.learn.config import TrainConfig, config_to_dict, load_config
 from mrchaos.learn.curriculum import GLOBAL, LOCAL, CurriculumTransform
 from mrchaos.learn.evaluate import evaluate_random
 from mrchaos.learn.policy import build_actor_critic
+from mrchaos.learn.precision import Autocast, autocast, resolve_precision
 
 __all__ = ["Trainer", "make_env", "resume_config"]
 
 log = logging.getLogger("mrchaos.learn.ppo")
 
+#: What the PPO loss reads from a batch once advantages are computed.
+TRAIN_KEYS = ("observation", "action", "action_log_prob", "advantage", "value_target", "state_value")
 LOSS_KEYS = ("loss_objective", "loss_critic", "loss_entropy", "entropy")
 CSV_FIELDS = [
     "iteration", "frames", "episodes", "minutes", "sps", "stage", "reward", "rela", "final",
@@ -96,7 +99,10 @@ class Trainer:
         self.value = self.actor_critic.get_value_operator()
         # What the collector stores: the action and its log-probability, not the
         # intermediate features and logits (for the spatial net, gigabytes per batch).
-        self.collect_policy = TensorDictSequential(self.policy, selected_out_keys=["action", "action_log_prob"])
+        self.precision = resolve_precision(cfg.precision, cfg.device)
+        self.collect_policy = Autocast(
+            TensorDictSequential(self.policy, selected_out_keys=["action", "action_log_prob"]), self.precision, cfg.device
+        )
         # No vmap: the spatial trunk uses channels_last tensors, which vmap cannot query.
         self.advantage = GAE(
             gamma=cfg.loss.gamma, lmbda=cfg.loss.lmbda, value_network=self.value, average_gae=False, deactivate_vmap=True
@@ -247,16 +253,18 @@ class Trainer:
     def update(self, data: TensorDict) -> dict[str, float]:
         """PPO on one batch: advantages once, then epochs of minibatches; mean losses."""
         cfg = self.cfg
-        with torch.no_grad():
+        with torch.no_grad(), autocast(self.precision, cfg.device):
             self.advantage(data)
         self.buffer.empty()
-        self.buffer.extend(data.reshape(-1))
+        # Only what the loss reads: the next observations alone would double every minibatch's copy.
+        self.buffer.extend(data.select(*TRAIN_KEYS).reshape(-1))
         sums = dict.fromkeys(LOSS_KEYS, 0.0)
         n_mb = max(1, cfg.collector.frames_per_batch // cfg.loss.minibatch_size)
         for _ in range(cfg.loss.epochs):
             for _ in range(n_mb):
                 batch = self.buffer.sample()
-                out = self.loss(batch)
+                with autocast(self.precision, cfg.device):
+                    out = self.loss(batch)
                 total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
                 self.optim.zero_grad(set_to_none=True)
                 total.backward()

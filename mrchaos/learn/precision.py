@@ -1,0 +1,60 @@
+"""Mixed precision: the network's matrix work in bfloat16, everything that is summed in fp32.
+
+``precision: bf16`` runs the policy's forward and backward passes under
+``torch.autocast`` (bfloat16 on the CPU's AMX units, or on CUDA); the weights, Adam's
+state, log-probabilities, ratios and losses stay fp32, because autocast leaves
+reductions, softmax and log-softmax in fp32 and the distribution casts its logits up.
+Where bfloat16 autocast is not available the run falls back to fp32 with one warning.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+__all__ = ["PRECISIONS", "Autocast", "autocast", "resolve_precision"]
+
+PRECISIONS = ("fp32", "bf16")
+log = logging.getLogger(__name__)
+_warned: set[str] = set()
+
+
+def resolve_precision(precision: str, device: str | torch.device = "cpu") -> str:
+    """The precision a run gets: ``bf16`` where this device supports it, else ``fp32`` (warned once)."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
+    if precision == "fp32":
+        return "fp32"
+    kind = torch.device(device).type
+    ok = torch.cuda.is_bf16_supported() if kind == "cuda" else kind == "cpu"
+    if not ok:
+        if kind not in _warned:
+            log.warning("bf16 autocast is not available on %s; training in fp32", kind)
+            _warned.add(kind)
+        return "fp32"
+    return "bf16"
+
+
+def autocast(precision: str, device: str | torch.device = "cpu"):
+    """A context for the network's passes: bf16 autocast, or nothing for fp32."""
+    if resolve_precision(precision, device) == "fp32":
+        return contextlib.nullcontext()
+    return torch.autocast(torch.device(device).type, dtype=torch.bfloat16)
+
+
+class Autocast(TensorDictModuleBase):
+    """A TensorDict module run under :func:`autocast` (the collector's policy in bf16)."""
+
+    def __init__(self, module: TensorDictModuleBase, precision: str, device: str | torch.device = "cpu") -> None:
+        super().__init__()
+        self.module = module
+        self.precision, self.device = precision, device
+        self.in_keys, self.out_keys = module.in_keys, module.out_keys
+
+    def forward(self, tensordict: TensorDictBase, *args, **kwargs) -> TensorDictBase:
+        with autocast(self.precision, self.device):
+            return self.module(tensordict, *args, **kwargs)
