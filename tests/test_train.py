@@ -192,7 +192,7 @@ def test_bf16_first_minibatch_ratios_are_one(tmp_path):
     from mrchaos.learn.precision import autocast
     from mrchaos.learn.ppo import Trainer
 
-    cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "precision=bf16", "logger.rerun=false", "logger.progress=false"])
+    cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "precision=bf16", "compile=true", "logger.rerun=false", "logger.progress=false"])
     trainer = Trainer(cfg, tmp_path / "bf16")
     data = next(iter(trainer.collector))
     trainer.collector.shutdown()
@@ -205,3 +205,28 @@ def test_bf16_first_minibatch_ratios_are_one(tmp_path):
     # And the update runs and gives finite fp32 losses.
     losses = trainer.update(data)
     assert all(math.isfinite(v) for v in losses.values())
+
+
+def test_collected_values_give_the_same_advantages_as_recomputing_them(tmp_path):
+    """GAE on the collector's values (next values shifted along time) equals GAE with the value network."""
+    from torchrl.objectives.value import GAE
+
+    from mrchaos.learn.ppo import Trainer
+
+    cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "logger.rerun=false", "logger.progress=false",
+                              "curriculum.stages=global"])
+    trainer = Trainer(cfg, tmp_path / "gae")
+    it = iter(trainer.collector)
+    next(it)
+    data = next(it)  # episodes that span the batch boundary
+    trainer.collector.shutdown()
+    assert data["next", "done"].any() and not data["next", "done"].all()
+    fast = data.clone()
+    with torch.no_grad():
+        trainer.values(fast)
+        trainer.advantage(fast)
+        slow = data.clone().exclude("state_value")
+        GAE(gamma=cfg.loss.gamma, lmbda=cfg.loss.lmbda, value_network=trainer.value, average_gae=False,
+            deactivate_vmap=True)(slow)
+    assert torch.allclose(fast["advantage"], slow["advantage"], atol=1e-4)
+    assert torch.allclose(fast["value_target"], slow["value_target"], atol=1e-4)

@@ -181,13 +181,16 @@ class BCConfig:
 class TrainConfig:
     """A whole experiment: ``algo`` "ppo" (the method) or "bc" (supervision: BC, dense targets, DAgger).
 
-    ``precision`` "bf16" runs the network under bfloat16 autocast (see :mod:`mrchaos.learn.precision`)."""
+    ``precision`` "bf16" runs the network under bfloat16 autocast (see :mod:`mrchaos.learn.precision`);
+    ``compile`` runs it through ``torch.compile`` (a C++ compiler on the machine; the first
+    iterations pay the compilation)."""
 
     name: str = "run"
     algo: str = "ppo"
     seed: int = 0
     device: str = "cpu"
     precision: str = "fp32"
+    compile: bool = False
     threads: int = 2
     runs_dir: str = "runs"
     env: EnvConfig = field(default_factory=EnvConfig)

@@ -40,7 +40,7 @@ from mrchaos.learn.checkpoint import (
 from mrchaos.learn.config import TrainConfig, config_to_dict, load_config
 from mrchaos.learn.curriculum import GLOBAL, LOCAL, CurriculumTransform
 from mrchaos.learn.evaluate import evaluate_random
-from mrchaos.learn.policy import build_actor_critic
+from mrchaos.learn.policy import build_actor_critic, compile_networks
 from mrchaos.learn.precision import Autocast, autocast, resolve_precision
 
 __all__ = ["Trainer", "make_env", "resume_config"]
@@ -95,18 +95,22 @@ class Trainer:
         base: TangramEnv = self.env.base_env
         self.base = base
         self.actor_critic = build_actor_critic(cfg.policy, base.grid, base.view, base.action_spec).to(cfg.device)
+        if cfg.compile:
+            compile_networks(self.actor_critic)
         self.policy = self.actor_critic.get_policy_operator()
         self.value = self.actor_critic.get_value_operator()
-        # What the collector stores: the action and its log-probability, not the
+        # What the collector stores: the action, its log-probability and the state's value
+        # (the value head reads the trunk's output the actor pass already made), not the
         # intermediate features and logits (for the spatial net, gigabytes per batch).
         self.precision = resolve_precision(cfg.precision, cfg.device)
         self.collect_policy = Autocast(
-            TensorDictSequential(self.policy, selected_out_keys=["action", "action_log_prob"]), self.precision, cfg.device
+            TensorDictSequential(self.policy, self.actor_critic.get_value_head(),
+                                 selected_out_keys=["action", "action_log_prob", "state_value"]),
+            self.precision, cfg.device,
         )
-        # No vmap: the spatial trunk uses channels_last tensors, which vmap cannot query.
-        self.advantage = GAE(
-            gamma=cfg.loss.gamma, lmbda=cfg.loss.lmbda, value_network=self.value, average_gae=False, deactivate_vmap=True
-        )
+        # GAE reads the values :meth:`values` writes: the collector's, shifted along time for
+        # the next states, so that the trunk does not run again over the whole batch.
+        self.advantage = GAE(gamma=cfg.loss.gamma, lmbda=cfg.loss.lmbda, value_network=None, average_gae=False)
         # The critic gets only its head: the actor's pass has already written the shared
         # trunk's output, so the trunk runs once per minibatch instead of twice.
         self.loss = ClipPPOLoss(
@@ -253,7 +257,8 @@ class Trainer:
     def update(self, data: TensorDict) -> dict[str, float]:
         """PPO on one batch: advantages once, then epochs of minibatches; mean losses."""
         cfg = self.cfg
-        with torch.no_grad(), autocast(self.precision, cfg.device):
+        with torch.no_grad():
+            self.values(data)
             self.advantage(data)
         self.buffer.empty()
         # Only what the loss reads: the next observations alone would double every minibatch's copy.
@@ -274,6 +279,24 @@ class Trainer:
                     sums[k] += float(out[k].detach()) / (cfg.loss.epochs * n_mb)
         self.collector.update_policy_weights_()
         return sums
+
+    def values(self, data: TensorDict) -> None:
+        """Write ``("next", "state_value")`` for a (worlds, time) batch whose ``state_value`` the collector wrote.
+
+        The next state of a step that did not end its episode is the following step's
+        state, whose value is known. Only the batch's last step and truncated episodes
+        (whose next state is not the reset one that follows) need the value network; a
+        terminated episode's next value is masked out by GAE.
+        """
+        v = data["state_value"]
+        nxt = torch.zeros_like(v)
+        nxt[..., :-1, :] = v[..., 1:, :]
+        need = data["next", "done"] & ~data["next", "terminated"]
+        need[..., -1, :] = True
+        need = need[..., 0]
+        with autocast(self.precision, self.cfg.device):
+            nxt[need] = self.value(data["next"][need].select("observation"))["state_value"].float()
+        data.set(("next", "state_value"), nxt)
 
     def curriculum_step(self, reward: float) -> str | None:
         """Switch to stage 2 when stage-1 reward plateaus or the time cap passes; the reason, if it switched."""
