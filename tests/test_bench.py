@@ -120,8 +120,7 @@ def test_shipped_policy_loads_and_beats_random(tmp_path):
 
 
 def test_mismatched_checkpoint_is_refused(tmp_path, capsys):
-    from mrchaos.bench.benchmark import shipped_path
-    from mrchaos.learn.checkpoint import load_checkpoint, save_checkpoint
+    from mrchaos.learn.checkpoint import load_checkpoint, save_checkpoint, shipped_path
 
     st = load_checkpoint(shipped_path("mrchaos.pt"))
     for key, value, msg in [("piece_set", "cans", "piece set"), ("obs_shape", [2, 64, 64], "observation shape")]:

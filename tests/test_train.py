@@ -189,8 +189,8 @@ def test_multisync_collector_smoke(tmp_path):
 
 def test_bf16_first_minibatch_ratios_are_one(tmp_path):
     """Under bf16 autocast the update recomputes the collector's log-probabilities: ratio 1 before any step."""
-    from mrchaos.learn.precision import autocast
     from mrchaos.learn.ppo import Trainer
+    from mrchaos.learn.precision import autocast
 
     cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "precision=bf16", "compile=true", "logger.rerun=false", "logger.progress=false"])
     trainer = Trainer(cfg, tmp_path / "bf16")
@@ -230,3 +230,18 @@ def test_collected_values_give_the_same_advantages_as_recomputing_them(tmp_path)
             deactivate_vmap=True)(slow)
     assert torch.allclose(fast["advantage"], slow["advantage"], atol=1e-4)
     assert torch.allclose(fast["value_target"], slow["value_target"], atol=1e-4)
+
+
+def test_init_from_starts_ppo_from_another_runs_weights(tmp_path):
+    from mrchaos.learn.ppo import Trainer
+
+    quiet = [f"runs_dir={tmp_path}", "logger.rerun=false", "logger.progress=false"]
+    first = Trainer(load_config(SMOKE, quiet), tmp_path / "a")
+    first.save()
+    first.collector.shutdown()
+    second = Trainer(load_config(SMOKE, quiet + [f"init_from={tmp_path / 'a'}", "seed=1"]), tmp_path / "b")
+    second.collector.shutdown()
+    a, b = first.actor_critic.state_dict(), second.actor_critic.state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(CheckpointError, match="no such checkpoint"):
+        Trainer(load_config(SMOKE, quiet + [f"init_from={tmp_path / 'none'}"]), tmp_path / "c")

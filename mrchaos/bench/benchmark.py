@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -26,8 +25,10 @@ from mrchaos.figures.families import FamilyRule, family_of
 from mrchaos.figures.figure import Figure, FigureSet
 from mrchaos.figures.pieces import get_piece_set, piece_set_names
 from mrchaos.learn.checkpoint import (
+    SHIPPED,
     CheckpointError,
     check_header,
+    checkpoint_path,
     load_checkpoint,
     policy_env,
 )
@@ -41,21 +42,9 @@ from mrchaos.learn.evaluate import (
 from mrchaos.tasks.chaos import generate
 from mrchaos.tasks.presets import PRESETS, TaskPreset
 
-__all__ = ["BenchError", "PolicySpec", "resolve_policy", "parse_families", "Bench", "SHIPPED"]
+__all__ = ["BenchError", "PolicySpec", "resolve_policy", "parse_families", "Bench"]
 
 METRICS = ("rela", "final", "iou", "strict_rela")
-#: Learnt policies shipped with the package: name -> (file, label).
-SHIPPED = {
-    "mrchaos": ("mrchaos.pt", "MRChaos (full curriculum, spatial net)"),
-    "mrchaos-paper": ("mrchaos-paper.pt", "MRChaos (full curriculum, paper net)"),
-    "mrchaos-wo-local": ("mrchaos-wo-local.pt", "MRChaos w/o local"),
-    "mrchaos-wo-global": ("mrchaos-wo-global.pt", "MRChaos w/o global"),
-    "bc": ("bc.pt", "BC (trained on the built-in library)"),
-    "mrchaos-cutlery": ("mrchaos-cutlery.pt", "MRChaos on cutlery (conf/cutlery.yaml)"),
-    "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),
-}
-
-
 class BenchError(MrchaosError, ValueError):
     """Bad benchmark input: one clear line, exit code 2."""
 
@@ -71,28 +60,19 @@ class PolicySpec:
     state: dict | None = field(default=None, repr=False)
 
 
-def shipped_path(file: str) -> Path:
-    return Path(str(resources.files("mrchaos") / "data" / "policies" / file))
-
-
 def resolve_policy(spec: str) -> PolicySpec:
-    """A name (random, oracle, mrchaos, mrchaos-wo-local, mrchaos-wo-global, bc) or a checkpoint / run path."""
+    """A baseline (random, oracle), a shipped policy's name (:data:`mrchaos.learn.checkpoint.SHIPPED`),
+    or a checkpoint / run path."""
     if spec == "random":
         return PolicySpec("random", "random (uniform actions)", "random")
     if spec == "oracle":
         return PolicySpec("oracle", "oracle (nearest grid; reads the solution)", "oracle")
+    try:
+        p = checkpoint_path(spec)
+    except CheckpointError as e:
+        raise BenchError(f"policy {spec!r}: {e} (or random, oracle)") from None
     if spec in SHIPPED:
-        file, label = SHIPPED[spec]
-        path = shipped_path(file)
-        if not path.exists():
-            raise BenchError(f"policy {spec!r}: its checkpoint {path} is not shipped with this version")
-        return PolicySpec(spec, label, "checkpoint", str(path), load_checkpoint(path))
-    p = Path(spec)
-    if p.is_dir():
-        p = p / "checkpoints" / "last.pt"
-    if not p.exists():
-        names = ["random", "oracle", *SHIPPED]
-        raise BenchError(f"policy {spec!r}: no such checkpoint or run, and not one of {names}")
+        return PolicySpec(spec, SHIPPED[spec][1], "checkpoint", str(p), load_checkpoint(p))
     return PolicySpec(Path(spec).name, f"{Path(spec).name} ({p})", "checkpoint", str(p), load_checkpoint(p))
 
 

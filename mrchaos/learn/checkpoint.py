@@ -10,6 +10,7 @@ A checkpoint is a plain dict of tensors and builtin containers (so it loads with
 from __future__ import annotations
 
 import io
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -19,8 +20,22 @@ from mrchaos.core.atomic import write_atomic
 from mrchaos.core.errors import MrchaosError
 from mrchaos.learn.config import upgrade_config_dict
 
-__all__ = ["CheckpointError", "save_checkpoint", "load_checkpoint", "policy_header", "check_header", "policy_env",
+__all__ = ["CheckpointError", "SHIPPED", "shipped_path", "checkpoint_path", "save_checkpoint", "load_checkpoint", "policy_header", "check_header", "policy_env",
            "POLICY_ENV_GROUPS", "FORMAT"]
+
+#: Learnt policies shipped with the package: name -> (file, label).
+SHIPPED = {
+    "mrchaos": ("mrchaos.pt", "MRChaos (full curriculum, spatial net)"),
+    "mrchaos-paper": ("mrchaos-paper.pt", "MRChaos (full curriculum, paper net)"),
+    "mrchaos-wo-local": ("mrchaos-wo-local.pt", "MRChaos w/o local"),
+    "mrchaos-wo-global": ("mrchaos-wo-global.pt", "MRChaos w/o global"),
+    "bc": ("bc.pt", "BC (trained on the built-in library)"),
+    "mrchaos-bc-chaos": ("mrchaos-bc-chaos.pt", "BC on chaos objects (conf/bc_chaos.yaml)"),
+    "mrchaos-dense": ("mrchaos-dense.pt", "dense counterfactual supervision on chaos (conf/dense.yaml)"),
+    "mrchaos-cutlery": ("mrchaos-cutlery.pt", "MRChaos on cutlery (conf/cutlery.yaml)"),
+    "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),
+}
+
 
 #: The env config groups a policy's weights depend on (its input image and its action head);
 #: an evaluation env takes them from the checkpoint.
@@ -31,6 +46,26 @@ FORMAT = 1
 
 class CheckpointError(MrchaosError, RuntimeError):
     """A missing, corrupt or incompatible checkpoint; the message names the file."""
+
+
+def shipped_path(file: str) -> Path:
+    """Where a shipped policy file lies in the installed package."""
+    return Path(str(resources.files("mrchaos") / "data" / "policies" / file))
+
+
+def checkpoint_path(spec: str) -> Path:
+    """The checkpoint file of a shipped policy's name, a run folder (its ``checkpoints/last.pt``) or a file."""
+    if spec in SHIPPED:
+        path = shipped_path(SHIPPED[spec][0])
+        if not path.exists():
+            raise CheckpointError(f"{path}: the checkpoint of {spec!r} is not shipped with this version")
+        return path
+    p = Path(spec)
+    if p.is_dir():
+        p = p / "checkpoints" / "last.pt"
+    if not p.exists():
+        raise CheckpointError(f"{spec}: no such checkpoint or run, and not a shipped policy ({', '.join(SHIPPED)})")
+    return p
 
 
 def save_checkpoint(path: str | Path, state: dict[str, Any], half: bool = False) -> None:

@@ -182,7 +182,8 @@ class TrainConfig:
     """A whole experiment: ``algo`` "ppo" (the method) or "bc" (supervision: BC, dense targets, DAgger).
 
     ``precision`` "bf16" runs the network under bfloat16 autocast (see :mod:`mrchaos.learn.precision`);
-    ``compile`` runs it through ``torch.compile`` (a C++ compiler on the machine; the first
+    ``init_from`` starts the network from a checkpoint's weights (a shipped name, a run or a
+    file), e.g. PPO on top of a supervised policy. ``compile`` runs it through ``torch.compile`` (a C++ compiler on the machine; the first
     iterations pay the compilation)."""
 
     name: str = "run"
@@ -191,6 +192,7 @@ class TrainConfig:
     device: str = "cpu"
     precision: str = "fp32"
     compile: bool = False
+    init_from: str | None = None
     threads: int = 2
     runs_dir: str = "runs"
     env: EnvConfig = field(default_factory=EnvConfig)

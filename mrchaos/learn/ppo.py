@@ -33,6 +33,7 @@ from mrchaos.env.tangram import TangramEnv
 from mrchaos.learn.checkpoint import (
     CheckpointError,
     check_header,
+    checkpoint_path,
     load_checkpoint,
     policy_header,
     save_checkpoint,
@@ -95,6 +96,8 @@ class Trainer:
         base: TangramEnv = self.env.base_env
         self.base = base
         self.actor_critic = build_actor_critic(cfg.policy, base.grid, base.view, base.action_spec).to(cfg.device)
+        if cfg.init_from and not resume:
+            self._initialise(cfg.init_from)
         if cfg.compile:
             compile_networks(self.actor_critic)
         self.policy = self.actor_critic.get_policy_operator()
@@ -202,6 +205,17 @@ class Trainer:
         self.iteration, self.frames = st["iteration"], st["frames"]
         self.episodes, self.minutes = st["episodes"], st["minutes"]
         log.info("resumed %s at iteration %d, %d frames, stage %d", path, self.iteration, self.frames, cur["stage"])
+
+    def _initialise(self, spec: str) -> None:
+        """Start from another run's weights (a fresh optimiser): PPO on top of a supervised policy."""
+        path = checkpoint_path(spec)
+        st = load_checkpoint(path)
+        check_header(st, path, self.base)
+        try:
+            self.actor_critic.load_state_dict(st["model"])
+        except (RuntimeError, KeyError) as e:
+            raise CheckpointError(f"{path}: weights do not fit this policy config ({str(e)[:200]})") from None
+        log.info("initialised the policy from %s", path)
 
     def save(self) -> Path:
         """Write ``last.pt`` and a numbered checkpoint (keeping the newest ``checkpoint.keep``)."""
