@@ -166,3 +166,25 @@ def test_bench_robot_options_need_robot_placement(capsys):
     assert "--placement robot" in capsys.readouterr().err
     assert bench_main(["--policy", "oracle", "--random-objects", "2", "--perturb", "9"]) == 2
     assert "--perturb must be a step in [0, 6]" in capsys.readouterr().err
+
+
+def test_every_shipped_policy_loads_by_name_and_fits_its_task():
+    from mrchaos.bench.benchmark import Bench, resolve_policy
+    from mrchaos.learn.checkpoint import SHIPPED
+
+    tasks = {"mrchaos-cutlery": "cutlery", "mrchaos-soda": "soda"}
+    for name in SHIPPED:
+        spec = resolve_policy(name)  # raises if the file is not shipped
+        bench = Bench(None, ["Random"], 1, 0, "teleport", 1, task=tasks.get(name, "tangram"))
+        env = bench.make_env(spec)
+        bench.actor(spec, env)  # rebuilds the network and checks it against the env
+        env.close()
+
+
+def test_supervised_chaos_policies_beat_the_ppo_policy_on_random(tmp_path):
+    out = tmp_path / "s"
+    assert bench_main(["--families", "random", "--policy", "mrchaos-dense", "--policy", "mrchaos-bc-chaos",
+                       "--policy", "mrchaos", "--random-objects", "32", "--out", str(out), "--worlds", "32"]) == 0
+    res = json.loads((out / "results.json").read_text())["policies"]
+    final = {k: v["families"]["Random"]["final"]["mean"] for k, v in res.items()}
+    assert final["mrchaos-dense"] > 0.85 and final["mrchaos-bc-chaos"] > 0.85 and final["mrchaos"] < 0.85, final
