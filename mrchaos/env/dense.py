@@ -41,7 +41,7 @@ class CounterfactualGrid:
 
     def __init__(self, piece_set: PieceSet, grid: ActionGrid, subdiv: int = 2) -> None:
         if grid.nx != grid.ny or grid.nx < 2:
-            raise ValueError(f"counterfactual coverage needs a square grid with nx = ny >= 2, got {grid.nvec}")
+            raise ValueError(f"counterfactual coverage needs equal x and y steps (nx = ny >= 2), got {grid.nvec}")
         self.piece_set, self.grid, self.subdiv = piece_set, grid, subdiv
         step = 2 * grid.half_range / (grid.nx - 1)
         px = step / subdiv
