@@ -11,13 +11,15 @@ Action:
     ``action`` int64 (N, 3): indices into the (x, y, theta) grid (``MultiCategorical``).
 Reward:
     the coverage of piece t's target slot by piece t (twins take the better slot),
-    with the reference's shaping, penetration and angle switches from config.
+    with the reference's shaping, penetration and angle switches from config; every
+    term is in ``info.reward_terms`` (see :mod:`mrchaos.env.rewards`).
 Randomizations:
-    targets from the task sampler (chaos objects, cache, figures); optional action
+    targets from the target sampler (chaos objects, cache, figures) or given at reset; optional action
     noise and camera jitter; the number k of pieces pre-assembled at reset.
 Success:
     the episode terminates after the last piece (or after ``horizon`` placements);
-    ``info`` carries the per-piece coverage and the whole-figure Final and IoU.
+    ``info`` carries the per-piece coverage, the whole-figure Final and IoU, and the
+    strict Rela of finished episodes.
 """
 
 from __future__ import annotations
