@@ -50,7 +50,8 @@ def test_a_preset_fills_what_the_config_leaves_out_and_the_config_wins():
 
 
 def test_old_keys_work_as_overrides_and_clash_with_new_ones(tmp_path):
-    cfg = load_config(None, ["env.view_extent=0.3", "task.cache_size=99", "task.chaos=0.5"])
+    cfg = load_config(None, ["env.view_extent=0.3", "task.cache_size=99", "task.chaos=0.5", "optim.lr=5e-5"])
+    assert cfg.optim.lr == 5e-5
     assert cfg.env.view.extent == 0.3 and cfg.task.cache.size == 99 and cfg.task.mix.chaos == 0.5
     with pytest.raises(ConfigError, match="both 'env.view_extent'"):
         config_from_dict({"env": {"view_extent": 0.3, "view": {"extent": 0.4}}})

@@ -352,6 +352,12 @@ def _coerce(value: Any, t: Any, where: str) -> Any:
             raise ConfigError(f"{where}: expected an integer, got {value!r}")
         return value
     if t is float:
+        if isinstance(value, str):
+            # YAML 1.1 reads 5e-5 (no dot) as a string; a number is what was meant.
+            try:
+                value = float(value)
+            except ValueError:
+                pass
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
         return float(value)
@@ -423,6 +429,7 @@ def load_config(path: str | Path | None, overrides: list[str] | None = None) -> 
         if key in RENAMED and not isinstance(value, dict):
             key = RENAMED[key]
         _set_dotted(data, key, value)
+    if overrides:
         where = f"{where} (with overrides)"
     return config_from_dict(data, where)
 
