@@ -32,6 +32,7 @@ SHIPPED = {
     "bc": ("bc.pt", "BC (trained on the built-in library)"),
     "mrchaos-bc-chaos": ("mrchaos-bc-chaos.pt", "BC on chaos objects (conf/bc_chaos.yaml)"),
     "mrchaos-dense": ("mrchaos-dense.pt", "dense counterfactual supervision on chaos (conf/dense.yaml)"),
+    "mrchaos-dense-ppo": ("mrchaos-dense-ppo.pt", "PPO on top of mrchaos-dense (conf/dense_ppo.yaml)"),
     "mrchaos-cutlery": ("mrchaos-cutlery.pt", "MRChaos on cutlery (conf/cutlery.yaml)"),
     "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),
 }
