@@ -55,7 +55,7 @@ def main() -> None:
     target = scatter(ps, b, rng, chaos, view)
     current = target + np.concatenate([rng.normal(0, 0.004, (b, p, 2)), rng.normal(0, 0.1, (b, p, 1))], -1)
     tpoly, cpoly = ps.footprints(target), ps.footprints(current)
-    parts = ps.part_piece if ps.parts_per_piece > 1 else None
+    parts = ps.raster_parts
     heights = np.tile(np.arange(1, p + 1) * 0.01, (b, 1))
     twins = ps.twin_matrix()
 

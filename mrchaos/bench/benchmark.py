@@ -9,6 +9,7 @@ strict Rela (ours), with a 95 % interval (1.96 standard errors) and the count.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass, field
@@ -40,11 +41,13 @@ from mrchaos.learn.evaluate import (
     policy_actor,
 )
 from mrchaos.tasks.chaos import generate
-from mrchaos.tasks.presets import PRESETS, TaskPreset
+from mrchaos.tasks.presets import TaskPreset, get_preset
 
 __all__ = ["BenchError", "PolicySpec", "resolve_policy", "parse_families", "Bench"]
 
 METRICS = ("rela", "final", "iou", "strict_rela")
+
+
 class BenchError(MrchaosError, ValueError):
     """Bad benchmark input: one clear line, exit code 2."""
 
@@ -71,16 +74,17 @@ def resolve_policy(spec: str) -> PolicySpec:
         p = checkpoint_path(spec)
     except CheckpointError as e:
         raise BenchError(f"policy {spec!r}: {e} (or random, oracle)") from None
-    if spec in SHIPPED:
-        return PolicySpec(spec, SHIPPED[spec][1], "checkpoint", str(p), load_checkpoint(p))
-    return PolicySpec(Path(spec).name, f"{Path(spec).name} ({p})", "checkpoint", str(p), load_checkpoint(p))
+    name = spec if spec in SHIPPED else Path(spec).name
+    label = SHIPPED[spec][1] if spec in SHIPPED else f"{name} ({p})"
+    return PolicySpec(name, label, "checkpoint", str(p), load_checkpoint(p))
 
 
 def check_task(task: str) -> TaskPreset:
     """The preset of ``task``, or :class:`BenchError` naming the known ones."""
-    if task not in PRESETS:
-        raise BenchError(f"unknown task {task!r}; use one of {sorted(PRESETS)}")
-    return PRESETS[task]
+    try:
+        return get_preset(task)
+    except KeyError as e:
+        raise BenchError(e.args[0]) from None
 
 
 def parse_families(text: str, task: str = "tangram") -> list[str]:
@@ -209,9 +213,8 @@ class Bench:
                      "piece_set": piece_set or self.piece_set.name}
         if spec.state is not None:
             env.update(policy_env(spec.state))
-        # Targets are given at reset: a chaos-only mix keeps the sampler from loading a cache.
-        data = {"env": env, "task": {"preset": self.task, "mix": {"chaos": 1.0, "cache": 0.0, "figures": 0.0}}}
-        return TangramEnv(config_from_dict(data, f"bench env ({spec.name})").env_config(), seed=self.seed)
+        cfg = config_from_dict({"env": env, "task": {"preset": self.task}}, f"bench env ({spec.name})").env_config()
+        return TangramEnv(dataclasses.replace(cfg, task=cfg.task.given_targets()), seed=self.seed)
 
     def actor(self, spec: PolicySpec, env: TangramEnv):
         if spec.kind == "oracle":

@@ -15,7 +15,7 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 
-from mrchaos.core.errors import MrchaosError
+from mrchaos.core.errors import MrchaosError, first_line
 
 __all__ = ["DependencyError", "import_dependencies", "run_command", "TRAINING_STACK"]
 
@@ -41,8 +41,7 @@ def import_dependencies(packages: Sequence[str] = TRAINING_STACK) -> None:
         try:
             importlib.import_module(name)
         except Exception as e:  # noqa: BLE001 - whatever a dependency raises on import is reported
-            first = str(e).strip().splitlines()[0] if str(e).strip() else ""
-            raise DependencyError(f"importing {name} failed ({type(e).__name__}: {first}){_hint(name)}") from e
+            raise DependencyError(f"importing {name} failed ({type(e).__name__}: {first_line(e)}){_hint(name)}") from e
 
 
 def run_command(prog: str, body: Callable[[], int], dependencies: Sequence[str] = TRAINING_STACK) -> int:

@@ -6,8 +6,14 @@ when a heavy dependency (mujoco, torchrl) fails to import.
 
 from __future__ import annotations
 
-__all__ = ["MrchaosError"]
+__all__ = ["MrchaosError", "first_line"]
 
 
 class MrchaosError(Exception):
     """An error in what the user gave (a file, a key, a value); its message names the culprit."""
+
+
+def first_line(e: BaseException, limit: int = 200) -> str:
+    """The first line of an exception's message, at most ``limit`` characters ("" when it has none)."""
+    text = str(e).strip()
+    return text.splitlines()[0][:limit] if text else ""

@@ -50,8 +50,9 @@ class CounterfactualGrid:
         # A view whose pixel centres hit every grid point and that holds every kernel placed on the grid.
         half = (grid.nx - 1) // 2 * subdiv + self.k // 2
         size = 2 * half + 1
+        # Grid x0 (and the top row's y) then sits at pixel k // 2, so a stride-subdiv
+        # convolution with no padding puts output o on grid point o.
         self.view = View(extent=size * px, size=size)
-        self.first = half - (grid.nx - 1) // 2 * subdiv - self.k // 2  # 0 by construction: grid x0 at k//2
         self.kernels = self._kernels(px)  # (P, T, 1, k, k) float32
         self.kernel_area = self.kernels.flatten(2).sum(-1)  # (P, T)
 
@@ -93,7 +94,7 @@ class CounterfactualGrid:
             twins: (P, P) bool, pieces that may fill each other's slot.
         """
         ps = self.piece_set
-        parts = ps.part_piece if ps.parts_per_piece > 1 else None
+        parts = ps.raster_parts
         slot_ids = rasterize(ps.footprints(targets), self.view, parts=parts).ids  # (N, H, W)
         occ = rasterize(placed_polys, self.view, visible=placed, parts=parts).ids >= 0
         piece_t = torch.as_tensor(piece, dtype=torch.long)

@@ -17,7 +17,6 @@ twins may both claim one slot under Rela:
 
 from __future__ import annotations
 
-import itertools
 import math
 
 import numpy as np
@@ -38,6 +37,7 @@ __all__ = [
     "final_coverage",
     "iou",
     "strict_rela",
+    "strict_rela_from_joint",
 ]
 
 
@@ -185,19 +185,40 @@ def iou(cur: torch.Tensor, silhouette: torch.Tensor) -> torch.Tensor:
 def strict_rela(cur: torch.Tensor, tgt: torch.Tensor, twin_groups: tuple[tuple[int, ...], ...], num_pieces: int) -> torch.Tensor:
     """(B,) mean per-piece coverage of the final view with twins assigned one-to-one.
 
-    Each twin group takes the permutation of its slots that maximises its total
+    Each twin group takes the assignment of its slots that maximises its total
     coverage, so two twins on one slot cannot both score.
     """
-    ratio = coverage_ratio(*coverage_counts(cur, tgt, num_pieces))
-    total = torch.zeros(cur.shape[0], dtype=torch.float64)
+    return strict_rela_from_joint(joint_counts(cur, tgt, num_pieces), twin_groups, num_pieces)
+
+
+def strict_rela_from_joint(joint: torch.Tensor, twin_groups: tuple[tuple[int, ...], ...],
+                           num_pieces: int) -> torch.Tensor:
+    """:func:`strict_rela` from a joint histogram (:func:`joint_counts`)."""
+    ratio = coverage_ratio(joint[:, 1:, 1:], joint[:, :, 1:].sum(1))
+    total = torch.zeros(joint.shape[0], dtype=torch.float64)
     grouped = {i for g in twin_groups for i in g}
     for i in range(num_pieces):
         if i not in grouped:
             total += ratio[:, i, i]
     for group in twin_groups:
-        best = torch.full((cur.shape[0],), -1.0, dtype=torch.float64)
-        for perm in itertools.permutations(group):
-            s = sum(ratio[:, i, j] for i, j in zip(group, perm))
-            best = torch.maximum(best, s)
-        total += best
+        total += _best_assignment(ratio, group)
     return (total / num_pieces).float()
+
+
+def _best_assignment(ratio: torch.Tensor, group: tuple[int, ...]) -> torch.Tensor:
+    """(B,) max over one-to-one assignments of the group's pieces to its slots of the summed coverage.
+
+    A dynamic programme over the sets of slots taken (2^k states, k^2 2^k steps instead
+    of k! permutations: 6 cans, 384 against 4,320), adding the pieces' terms in the same
+    order as a sum over a permutation, so the result is the same to the last bit.
+    """
+    k = len(group)
+    best: list[torch.Tensor | None] = [None] * (1 << k)
+    best[0] = torch.zeros(ratio.shape[0], dtype=ratio.dtype)
+    for taken in range(1, 1 << k):
+        i = bin(taken).count("1") - 1  # the piece that takes the last slot of this set
+        for j in range(k):
+            if taken >> j & 1:
+                s = best[taken ^ (1 << j)] + ratio[:, group[i], group[j]]
+                best[taken] = s if best[taken] is None else torch.maximum(best[taken], s)
+    return best[-1]

@@ -43,7 +43,7 @@ from mrchaos.env.metrics import (
     final_from_joint,
     iou_from_joint,
     joint_counts,
-    strict_rela,
+    strict_rela_from_joint,
 )
 from mrchaos.env.observation import ObservationConfig, silhouette_image, view_image
 from mrchaos.env.rewards import REWARD_TERMS, RewardConfig, reward_terms
@@ -271,7 +271,7 @@ class TangramEnv(EnvBase):
         self.target_source[rows] = tasks.source
         self.target_figure[rows] = tasks.figure
         ps = self.piece_set
-        ids = rasterize(ps.footprints(tasks.poses), self.view, parts=ps.part_piece if ps.parts_per_piece > 1 else None).ids
+        ids = rasterize(ps.footprints(tasks.poses), self.view, parts=ps.raster_parts).ids
         self._target_ids[rows] = ids
         self._silhouette[rows] = silhouette_image(ids)
         pre = [(np.flatnonzero(k > j), tasks.poses[k > j, j]) for j in range(self.num_pieces)]
@@ -299,8 +299,11 @@ class TangramEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         a = self._check_action(tensordict.get("action"))
-        piece = np.minimum(self.next_piece, self.num_pieces - 1)
-        return self.place_poses(self.piece_set.to_centroid(piece, self.grid.to_pose(a)))
+        return self.place_poses(self.piece_set.to_centroid(self._upcoming(), self.grid.to_pose(a)))
+
+    def _upcoming(self) -> np.ndarray:
+        """(N,) the piece each world places next (the last one once its episode is over)."""
+        return np.minimum(self.next_piece, self.num_pieces - 1)
 
     def place_poses(self, poses: np.ndarray) -> TensorDictBase:
         """Place the next piece of every world at continuous centroid poses (N, 3); return the step's outputs.
@@ -354,7 +357,7 @@ class TangramEnv(EnvBase):
     # ------------------------------------------------------------------ privileged and tooling
     def oracle_targets(self) -> OracleTargets:
         """The next piece of every world and its exact target pose: the solution, for oracles and tests."""
-        piece = np.minimum(self.next_piece, self.num_pieces - 1)
+        piece = self._upcoming()
         return OracleTargets(piece, self._target[np.arange(self.cfg.num_worlds), piece].copy())
 
     def counterfactual(self) -> tuple[torch.Tensor, torch.Tensor]:
@@ -363,9 +366,8 @@ class TangramEnv(EnvBase):
         and overlap in [0, 1] (see :mod:`mrchaos.env.dense`). Privileged, like :meth:`oracle_targets`."""
         if self._counterfactual is None:
             self._counterfactual = CounterfactualGrid(self.piece_set, self.grid)
-        piece = np.minimum(self.next_piece, self.num_pieces - 1)
-        return self._counterfactual.coverage(piece, self._target, self._worlds.footprint, self._worlds.placed,
-                                             self._twins)
+        return self._counterfactual.coverage(self._upcoming(), self._target, self._worlds.footprint,
+                                             self._worlds.placed, self._twins)
 
     @property
     def worlds(self) -> Worlds:
@@ -408,9 +410,9 @@ class TangramEnv(EnvBase):
             return raster, self._worlds.raster(self.view, shift=shift, need_height=need_height)
         return raster, raster
 
-    def _step_reward(self, p: _Placement, coverage: torch.Tensor, slot: torch.Tensor,
+    def _step_reward(self, p: _Placement, acted: torch.Tensor, coverage: torch.Tensor, slot: torch.Tensor,
                      held: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The named reward terms of the worlds that placed a piece (0 elsewhere), (N,) each."""
+        """The named reward terms of the worlds that placed a piece (``acted``; 0 elsewhere), (N,) each."""
         n = self.cfg.num_worlds
         t = torch.as_tensor(p.piece)
         ar = torch.arange(n)
@@ -422,9 +424,7 @@ class TangramEnv(EnvBase):
         slot_theta = torch.as_tensor(self._target[np.arange(n), slot[ar, t].numpy(), 2], dtype=torch.float32)
         terms = reward_terms(self.cfg.reward, raw, self._shaped[t], torch.as_tensor(p.penetration, dtype=torch.float32),
                              torch.as_tensor(p.commanded[:, 2], dtype=torch.float32), slot_theta, self._period[t])
-        mask = torch.zeros(n, dtype=torch.bool)
-        mask[torch.as_tensor(p.acted)] = True
-        return {k: torch.where(mask, v, torch.zeros(())) for k, v in terms.items()}
+        return {k: torch.where(acted, v, torch.zeros(())) for k, v in terms.items()}
 
     def _observe(self, fresh: bool, placement: _Placement | None = None) -> TensorDictBase:
         """Observation, info, reward (unless ``fresh``, i.e. a reset) and done flags of every world."""
@@ -442,20 +442,19 @@ class TangramEnv(EnvBase):
         terms = dict.fromkeys(REWARD_TERMS, zeros)
         pieces = torch.zeros(n, dtype=torch.int64)
         strict = zeros
-        acted = placement is not None and len(placement.acted) > 0
-        if acted:
-            terms = self._step_reward(placement, coverage, slot, held)
+        if placement is not None and len(placement.acted) > 0:
+            acted = torch.zeros(n, dtype=torch.bool)
+            acted[torch.as_tensor(placement.acted)] = True
+            terms = self._step_reward(placement, acted, coverage, slot, held)
             pieces = torch.as_tensor(placement.piece)
-            mask = torch.zeros(n, dtype=torch.bool)
-            mask[torch.as_tensor(placement.acted)] = True
-            ended = mask & torch.as_tensor(self.next_piece >= self.end_piece)
+            ended = acted & torch.as_tensor(self.next_piece >= self.end_piece)
             self._done = self._done | ended[:, None]
         over = self._done[:, 0]
         if over.any():
             # The strict metric of every finished episode, from its view as it is now.
             rows = over.nonzero()[:, 0]
             strict = zeros.clone()
-            strict[rows] = strict_rela(raster.ids[rows], self._target_ids[rows], self.piece_set.twins, p)
+            strict[rows] = strict_rela_from_joint(joint[rows], self.piece_set.twins, p)
         self._held = held
         self._timings["images"] += t1 - t0
         self._timings["reward"] += time.perf_counter() - t1

@@ -89,8 +89,7 @@ class Figure:
     def target_ids(self, view: View = View()) -> torch.Tensor:
         """(H, W) int8 image of the target piece ids (-1 outside the silhouette)."""
         ps = self.piece_set
-        parts = ps.part_piece if ps.parts_per_piece > 1 else None
-        return rasterize(ps.footprints(self.poses, self.mirrored)[None], view, parts=parts).ids[0]
+        return rasterize(ps.footprints(self.poses, self.mirrored)[None], view, parts=ps.raster_parts).ids[0]
 
     def silhouette(self, view: View = View()) -> torch.Tensor:
         """(H, W) bool silhouette image I_s."""

@@ -241,6 +241,12 @@ class PieceSet:
         """(P*K,) the piece of every padded part: parts are grouped by piece, in piece order."""
         return np.repeat(np.arange(len(self.pieces)), self.parts_per_piece)
 
+    @property
+    def raster_parts(self) -> np.ndarray | None:
+        """What :func:`mrchaos.core.raster.rasterize` takes as ``parts`` for this set's footprints:
+        :attr:`part_piece`, or None for a convex set (one part per piece)."""
+        return self.part_piece if self.parts_per_piece > 1 else None
+
     def padded_parts(self, mirrored: np.ndarray | None = None) -> np.ndarray:
         """(P*K, Vmax, 2) convex parts, K per piece; a piece with fewer parts repeats its
         last one, shorter polygons repeat their last vertex. For convex sets this is

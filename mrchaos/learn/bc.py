@@ -40,7 +40,6 @@ from mrchaos.learn.evaluate import evaluate, evaluate_random, policy_actor
 from mrchaos.learn.policy import build_actor_critic
 from mrchaos.learn.precision import autocast
 from mrchaos.tasks.chaos import generate
-from mrchaos.tasks.sampler import MixConfig
 
 __all__ = ["augment", "demonstrations", "supervised_loss", "train_bc"]
 
@@ -124,8 +123,7 @@ def supervised_loss(policy, obs: torch.Tensor, labels: torch.Tensor, dense: bool
     if not dense:
         return -dist.log_prob(labels).mean()
     q = labels.flatten(1)
-    cov = torch.where(q == _MASKED, torch.full_like(q, 0, dtype=torch.float32), q.float() / 254)
-    logits = torch.where(q == _MASKED, torch.full_like(cov, -torch.inf), cov / temperature)
+    logits = torch.where(q == _MASKED, -torch.inf, q.float() / 254 / temperature)
     target = torch.softmax(logits, -1)
     return -(target * dist.logits).sum(-1).mean()
 
@@ -142,9 +140,8 @@ def train_bc(cfg: TrainConfig, run_dir: Path) -> dict:
     dense = bc.targets == "dense"
     rng = np.random.default_rng(cfg.seed)
     targets, what = _targets(cfg, rng, bc.objects, bc.seed)
-    eval_cfg = dataclasses.replace(cfg.env_config(), task=dataclasses.replace(
-        cfg.task, mix=MixConfig(chaos=1.0, cache=0.0, figures=0.0)))  # targets are given: no cache
-    env = TangramEnv(dataclasses.replace(eval_cfg, num_worlds=min(128, len(targets))), seed=cfg.seed)
+    env = TangramEnv(dataclasses.replace(cfg.env_config(), num_worlds=min(128, len(targets)),
+                                         task=cfg.task.given_targets()), seed=cfg.seed)
     t0 = time.perf_counter()
     obs, labels = demonstrations(env, targets, dense=dense, overlap_limit=bc.overlap_limit)
     log.info("%d demonstration steps from %s in %.0f s", len(obs), what, time.perf_counter() - t0)

@@ -17,7 +17,7 @@ from typing import Any
 import torch
 
 from mrchaos.core.atomic import write_atomic
-from mrchaos.core.errors import MrchaosError
+from mrchaos.core.errors import MrchaosError, first_line
 from mrchaos.learn.config import upgrade_config_dict
 
 __all__ = ["CheckpointError", "SHIPPED", "shipped_path", "checkpoint_path", "save_checkpoint", "load_checkpoint", "policy_header", "check_header", "policy_env",
@@ -88,8 +88,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     try:
         state = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as e:  # torch raises many types for truncated or foreign files
-        first = (str(e).strip().splitlines() or [""])[0][:160]
-        raise CheckpointError(f"{p}: not a readable checkpoint ({type(e).__name__}: {first})") from None
+        raise CheckpointError(f"{p}: not a readable checkpoint ({type(e).__name__}: {first_line(e, 160)})") from None
     if not isinstance(state, dict) or state.get("format") != FORMAT or "model" not in state:
         raise CheckpointError(f"{p}: not an mrchaos checkpoint (format {FORMAT})")
     if state.get("half"):

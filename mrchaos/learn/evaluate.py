@@ -19,7 +19,6 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from mrchaos.env.tangram import ROBOT_FAILURES, EnvConfig, TangramEnv
 from mrchaos.tasks.chaos import generate
-from mrchaos.tasks.sampler import MixConfig
 
 __all__ = ["EpisodeResults", "evaluate", "evaluate_random", "concat_results", "policy_actor"]
 
@@ -127,9 +126,7 @@ def evaluate_random(policy, env_cfg: EnvConfig, n: int = 200, seed: int = 2024) 
     """Greedy whole episodes of ``policy`` on ``n`` seeded Random (chaos) objects of ``env_cfg``'s task,
     without the training noise; mean Rela, Final, IoU and strict Rela."""
     noise = dataclasses.replace(env_cfg.noise, action_xy=0.0, action_theta=0.0, camera_jitter=0.0)
-    # Targets are given at reset: a chaos-only mix keeps the sampler from loading a cache.
-    task = dataclasses.replace(env_cfg.task, mix=MixConfig(chaos=1.0, cache=0.0, figures=0.0))
-    cfg = dataclasses.replace(env_cfg, num_worlds=min(n, 100), noise=noise, task=task)
+    cfg = dataclasses.replace(env_cfg, num_worlds=min(n, 100), noise=noise, task=env_cfg.task.given_targets())
     env = TangramEnv(cfg, seed=seed)
     targets = generate(env.piece_set, n, np.random.default_rng(seed), cfg.task.chaos, cfg.view)[0]
     res = evaluate(env, targets, policy_actor(policy))

@@ -145,9 +145,8 @@ class GridCategorical(Distribution):
 
 def _prep(obs: torch.Tensor, pool: int) -> torch.Tensor:
     # Straight to the autocast dtype (bf16 holds 0 and 255 exactly): no fp32 copy of the batch.
-    dtype = torch.get_autocast_dtype("cpu") if torch.is_autocast_enabled("cpu") else torch.float32
-    if obs.is_cuda:
-        dtype = torch.get_autocast_dtype("cuda") if torch.is_autocast_enabled("cuda") else torch.float32
+    kind = obs.device.type
+    dtype = torch.get_autocast_dtype(kind) if torch.is_autocast_enabled(kind) else torch.float32
     x = obs.to(dtype) * (1.0 / 255.0)
     return F.avg_pool2d(x, pool) if pool > 1 else x
 

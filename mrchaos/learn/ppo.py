@@ -185,11 +185,19 @@ class Trainer:
             "minutes": self.minutes,
         }
 
-    def _restore(self, path: Path) -> None:
+    def _load_weights(self, path: Path) -> dict[str, Any]:
+        """A checkpoint that fits this env, its weights loaded into the actor-critic."""
         st = load_checkpoint(path)
         check_header(st, path, self.base)
         try:
             self.actor_critic.load_state_dict(st["model"])
+        except (RuntimeError, KeyError, ValueError) as e:
+            raise CheckpointError(f"{path}: weights do not fit this policy config ({str(e)[:200]})") from None
+        return st
+
+    def _restore(self, path: Path) -> None:
+        st = self._load_weights(path)
+        try:
             self.optim.load_state_dict(st["optim"])
         except (RuntimeError, KeyError, ValueError) as e:
             raise CheckpointError(f"{path}: weights do not fit this policy config ({str(e)[:200]})") from None
@@ -209,12 +217,7 @@ class Trainer:
     def _initialise(self, spec: str) -> None:
         """Start from another run's weights (a fresh optimiser): PPO on top of a supervised policy."""
         path = checkpoint_path(spec)
-        st = load_checkpoint(path)
-        check_header(st, path, self.base)
-        try:
-            self.actor_critic.load_state_dict(st["model"])
-        except (RuntimeError, KeyError) as e:
-            raise CheckpointError(f"{path}: weights do not fit this policy config ({str(e)[:200]})") from None
+        self._load_weights(path)
         log.info("initialised the policy from %s", path)
 
     def save(self) -> Path:

@@ -16,7 +16,7 @@ import ctypes.util
 import os
 from collections.abc import Callable, Mapping
 
-from mrchaos.core.errors import MrchaosError
+from mrchaos.core.errors import MrchaosError, first_line
 
 __all__ = ["HEADLESS_BACKENDS", "RenderingUnavailable", "choose_backend", "make_renderer"]
 
@@ -74,7 +74,7 @@ def _context_class(backend: str) -> type:
     except Exception as e:  # noqa: BLE001 - any loader failure means this backend is unusable
         hint = _INSTALL.get(backend, "a working OpenGL")
         raise RenderingUnavailable(
-            f"MuJoCo's {backend} backend failed to load ({type(e).__name__}: {e}); install {hint}"
+            f"MuJoCo's {backend} backend failed to load ({type(e).__name__}: {first_line(e)}); install {hint}"
         ) from e
     return GLContext
 
@@ -92,8 +92,7 @@ def make_renderer(model, height: int, width: int):
     try:
         return mujoco.Renderer(model, height=height, width=width)
     except Exception as e:  # noqa: BLE001 - a context that cannot open is reported, not traced
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise RenderingUnavailable(
-            f"MuJoCo could not open an OpenGL context with MUJOCO_GL={backend} ({msg}); "
+            f"MuJoCo could not open an OpenGL context with MUJOCO_GL={backend} ({first_line(e) or type(e).__name__}); "
             f"install {_INSTALL.get(backend, 'a working OpenGL')}, or set MUJOCO_GL to another backend"
         ) from e

@@ -127,6 +127,7 @@ class Worlds:
         self._parts = piece_set.padded_parts()
         self._k = piece_set.parts_per_piece
         self._part_piece = piece_set.part_piece
+        self._raster_parts = piece_set.raster_parts
         self._v = self._parts.shape[1]
         self._thick = np.array([pc.thickness for pc in piece_set.pieces])
         # Prism vertices of the parts in body frames, padded like the outlines: (P*K, 2V, 3).
@@ -311,9 +312,8 @@ class Worlds:
         fp = self.footprint[sel]
         if shift is not None:
             fp = fp + shift[:, None, None, :]
-        parts = self._part_piece if self._k > 1 else None
         return rasterize(fp, view, visible=self.placed[sel], heights=self.top[sel], need_height=need_height,
-                         parts=parts)
+                         parts=self._raster_parts)
 
     @property
     def physics_share(self) -> float:

@@ -7,6 +7,7 @@ caller's generator, so a seeded environment gets the same targets every run.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,6 +67,11 @@ class TaskConfig:
     chaos: ChaosConfig = field(default_factory=ChaosConfig)
     cache: CacheConfig = field(default_factory=CacheConfig)
     figure_sets: list[str] = field(default_factory=lambda: ["builtin"])
+
+    def given_targets(self) -> TaskConfig:
+        """This task for an env whose targets are all given at reset (evaluation, demonstrations):
+        fresh chaos only, so that no cache is loaded or built for a sampler that is never asked."""
+        return dataclasses.replace(self, mix=MixConfig(chaos=1.0, cache=0.0, figures=0.0))
 
 
 @dataclass
