@@ -5,14 +5,22 @@ Runs a few iterations of ``conf/full.yaml`` (256 worlds, 4096 frames per iterati
 and prints env-steps per second with the split between collection (env + policy
 forward) and update (GAE + PPO epochs), from the run's own metrics.
 
-    python benchmarks/train_throughput.py [--iterations 4] [--threads 2] [key=value ...]
+Then, for the default (spatial) policy, collection alone through each collector kind:
+``sync`` (one env of 256 worlds in this process, ``--threads`` threads) beside ``multisync``
+(worker processes) and ``ray`` (Ray actors on a local cluster), each with ``--workers``
+workers of 256 worlds on one thread. Training on the GPU: add ``device=cuda``.
+
+    python benchmarks/train_throughput.py [--iterations 4] [--threads 2] [--workers 2]
+        [--collectors sync multisync ray] [key=value ...]
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import importlib.util
 import tempfile
+import time
 from pathlib import Path
 
 from mrchaos.learn.config import load_config
@@ -28,21 +36,51 @@ VARIANTS = {
 }
 
 
+def _config(tmp: str, overrides: list[str]):
+    return load_config(ROOT / "conf" / "full.yaml", [
+        f"runs_dir={tmp}", "name=bench", "collector.max_minutes=0", "logger.backends=[]",
+        "logger.progress=false", "checkpoint.every=100000", "task.cache.path=null", "task.cache.size=1024",
+        *overrides,
+    ])
+
+
+def collection_throughput(kind: str, workers: int, threads: int, batches: int, overrides: list[str]) -> float:
+    """World-steps per second of collection alone (after one warm-up batch) with one collector kind."""
+    with tempfile.TemporaryDirectory() as tmp:
+        extra = [f"threads={threads}", f"env.physics.nthread={threads}"] if kind == "sync" else [
+            f"collector.workers={workers}", "collector.worker_threads=1", "threads=1"]
+        cfg = _config(tmp, [f"collector.kind={kind}", "collector.total_frames=-1", *extra, *overrides])
+        trainer = Trainer(cfg, Path(tmp) / "bench")
+        try:
+            it = iter(trainer.collector)
+            next(it)
+            t = time.perf_counter()
+            frames = sum(next(it).numel() for _ in range(batches))
+            return frames / (time.perf_counter() - t)
+        finally:
+            trainer.collector.shutdown()
+            if kind == "ray":
+                import ray
+
+                ray.shutdown()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--iterations", type=int, default=4, help="measured iterations (after one warm-up)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS))
+    ap.add_argument("--collectors", nargs="*", default=["sync", "multisync", "ray"],
+                    help="collector kinds to time collection alone with (none: skip)")
+    ap.add_argument("--workers", type=int, default=2, help="workers of multisync and ray")
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args()
     print(f"{'policy':>14} {'params':>9} {'steps/s':>8} {'collect':>8} {'update':>8}   (per 4096-frame iteration)")
     for name in args.variants:
         with tempfile.TemporaryDirectory() as tmp:
             frames = 4096 * (args.iterations + 1)
-            cfg = load_config(ROOT / "conf" / "full.yaml", VARIANTS[name] + [
-                f"runs_dir={tmp}", "name=bench", f"threads={args.threads}", f"env.physics.nthread={args.threads}",
-                f"collector.total_frames={frames}", "collector.max_minutes=0", "logger.rerun=false",
-                "logger.progress=false", "checkpoint.every=100000", "task.cache.path=null", "task.cache.size=1024",
+            cfg = _config(tmp, VARIANTS[name] + [
+                f"threads={args.threads}", f"env.physics.nthread={args.threads}", f"collector.total_frames={frames}",
                 *args.overrides,
             ])
             trainer = Trainer(cfg, Path(tmp) / "bench")
@@ -54,6 +92,16 @@ def main() -> None:
             n = sum(4096 for _ in rows)
             print(f"{name:>14} {count_parameters(trainer.actor_critic):>9,} {n / (c + u):>8.0f} "
                   f"{c / len(rows):>7.2f}s {u / len(rows):>7.2f}s")
+    if args.collectors:
+        print(f"\ncollection alone, spatial policy, {args.iterations} batches of 4096 world-steps:")
+        print(f"{'collector':>14} {'workers':>8} {'steps/s':>8}")
+    for kind in args.collectors:
+        if kind == "ray" and importlib.util.find_spec("ray") is None:
+            print(f"{kind:>14}   (skipped: pip install -e '.[ray]')")
+            continue
+        sps = collection_throughput(kind, args.workers, args.threads, args.iterations, args.overrides)
+        workers = 1 if kind == "sync" else args.workers
+        print(f"{kind:>14} {workers:>8} {sps:>8.0f}")
 
 
 if __name__ == "__main__":

@@ -52,3 +52,17 @@ def rendering() -> str:
             pytest.fail(f"rendering must work in CI: {e}")
         pytest.skip(str(e))
     return backend
+
+
+def require_extra(package: str, extra: str):
+    """Import an optional extra's package. In CI (``CI=true``, which installs the test extra and
+    with it ``[ray,tensorboard]``) a missing one fails the test; elsewhere it skips, naming the install."""
+    import importlib
+
+    try:
+        return importlib.import_module(package)
+    except ImportError:
+        msg = f"{package} is not installed: pip install -c constraints.txt -e '.[{extra}]'"
+        if os.environ.get("CI", "").lower() in ("1", "true", "yes"):
+            pytest.fail(f"the test extra must bring it in CI: {msg}")
+        pytest.skip(msg)

@@ -192,7 +192,7 @@ def test_bf16_first_minibatch_ratios_are_one(tmp_path):
     from mrchaos.learn.ppo import Trainer
     from mrchaos.learn.precision import autocast
 
-    cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "precision=bf16", "compile=true", "logger.rerun=false", "logger.progress=false"])
+    cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "precision=bf16", "compile=true", "logger.backends=[]", "logger.progress=false"])
     trainer = Trainer(cfg, tmp_path / "bf16")
     data = next(iter(trainer.collector))
     trainer.collector.shutdown()
@@ -213,7 +213,7 @@ def test_collected_values_give_the_same_advantages_as_recomputing_them(tmp_path)
 
     from mrchaos.learn.ppo import Trainer
 
-    cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "logger.rerun=false", "logger.progress=false",
+    cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "logger.backends=[]", "logger.progress=false",
                               "curriculum.stages=global"])
     trainer = Trainer(cfg, tmp_path / "gae")
     it = iter(trainer.collector)
@@ -235,7 +235,7 @@ def test_collected_values_give_the_same_advantages_as_recomputing_them(tmp_path)
 def test_init_from_starts_ppo_from_another_runs_weights(tmp_path):
     from mrchaos.learn.ppo import Trainer
 
-    quiet = [f"runs_dir={tmp_path}", "logger.rerun=false", "logger.progress=false"]
+    quiet = [f"runs_dir={tmp_path}", "logger.backends=[]", "logger.progress=false"]
     first = Trainer(load_config(SMOKE, quiet), tmp_path / "a")
     first.save()
     first.collector.shutdown()

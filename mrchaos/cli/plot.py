@@ -1,4 +1,6 @@
-"""``mrchaos-plot RUN_DIR [RUN_DIR ...] [--out PNG]``: learning curves like the paper's Fig. 4b."""
+"""``mrchaos-plot RUN [RUN ...] [--x episodes|frames|minutes ...] [--out PNG]``: learning curves like
+the paper's Fig. 4b. A RUN is a run folder or a ``metrics.csv`` (e.g. the ones kept in ``docs/runs/``);
+several ``--x`` give one panel each (Rela against minutes and against frames, say)."""
 
 from __future__ import annotations
 
@@ -10,8 +12,19 @@ from pathlib import Path
 from mrchaos.cli.guard import run_command
 
 
+AXES = {"episodes": "training episodes", "frames": "frames (world-steps)", "minutes": "training minutes"}
+
+
+def _label(run: Path) -> str:
+    run = Path(run)
+    return run.stem if run.suffix == ".csv" else run.name
+
+
 def read_metrics(run_dir: Path) -> list[dict[str, float]]:
-    path = Path(run_dir) / "metrics.csv"
+    """The rows of a run's ``metrics.csv`` (``run_dir`` is the run folder or the file), as floats."""
+    path = Path(run_dir)
+    if path.suffix != ".csv":
+        path = path / "metrics.csv"
     if not path.exists():
         raise FileNotFoundError(f"{run_dir}: no metrics.csv")
     with open(path) as f:
@@ -21,37 +34,42 @@ def read_metrics(run_dir: Path) -> list[dict[str, float]]:
     return rows
 
 
-def plot_runs(run_dirs: list[Path], out: Path, window: int = 10) -> None:
-    """Relative coverage (smoothed) against training episodes, stage switches marked."""
+def plot_runs(run_dirs: list[Path], out: Path, window: int = 10, xs: tuple[str, ...] = ("episodes",)) -> None:
+    """Relative coverage (smoothed) against episodes, frames or minutes, one panel per axis, stage switches marked."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
 
-    fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
-    for run in run_dirs:
-        rows = read_metrics(run)
-        ep = np.array([r["episodes"] for r in rows])
-        rela = np.array([r["rela"] for r in rows])
-        ok = ~np.isnan(rela)
-        ep, rela = ep[ok], rela[ok]
-        k = max(1, min(window, len(rela) // 5))
-        # Trailing mean: each point averages the k iterations up to it (no edge artefacts).
-        smooth = np.convolve(rela, np.ones(k) / k, mode="valid")
-        line, = ax.plot(ep[k - 1 :], smooth, label=Path(run).name)
-        ax.plot(ep, rela, color=line.get_color(), alpha=0.2, lw=0.8)
-        stages = [r["stage"] for r in rows]
-        eps_all = [r["episodes"] for r in rows]
-        for i in range(1, len(stages)):
-            if stages[i] != stages[i - 1]:
-                ax.axvline(eps_all[i], color=line.get_color(), ls="--", lw=1)
-                ax.text(eps_all[i], 0.03, " stage 2", color=line.get_color(), fontsize=8)
-    ax.set_xlabel("training episodes")
-    ax.set_ylabel("relative coverage (Rela)")
-    ax.set_ylim(0, 1)
-    ax.grid(alpha=0.3)
-    ax.legend()
+    for x in xs:
+        if x not in AXES:
+            raise ValueError(f"--x must be one of {', '.join(AXES)}, got {x!r}")
+    fig, axes = plt.subplots(1, len(xs), figsize=(7 * len(xs), 4), dpi=120, squeeze=False)
+    runs = [(run, read_metrics(run)) for run in run_dirs]
+    for ax, x in zip(axes[0], xs):
+        for run, rows in runs:
+            if not rows or "rela" not in rows[0]:
+                raise ValueError(f"{run}: metrics.csv has no rela column (a supervised run?)")
+            t = np.array([r[x] for r in rows])
+            rela = np.array([r["rela"] for r in rows])
+            ok = ~np.isnan(rela)
+            t_ok, rela = t[ok], rela[ok]
+            k = max(1, min(window, len(rela) // 5))
+            # Trailing mean: each point averages the k iterations up to it (no edge artefacts).
+            smooth = np.convolve(rela, np.ones(k) / k, mode="valid")
+            line, = ax.plot(t_ok[k - 1 :], smooth, label=_label(run))
+            ax.plot(t_ok, rela, color=line.get_color(), alpha=0.2, lw=0.8)
+            stages = [r["stage"] for r in rows]
+            for i in range(1, len(stages)):
+                if stages[i] != stages[i - 1]:
+                    ax.axvline(t[i], color=line.get_color(), ls="--", lw=1)
+                    ax.text(t[i], 0.03, " stage 2", color=line.get_color(), fontsize=8)
+        ax.set_xlabel(AXES[x])
+        ax.set_ylabel("relative coverage (Rela) of the batch's placements")
+        ax.set_ylim(0, 1)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out)
@@ -59,13 +77,15 @@ def plot_runs(run_dirs: list[Path], out: Path, window: int = 10) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrchaos-plot", description=__doc__)
-    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("runs", nargs="+", type=Path, help="run folders or metrics.csv files")
+    ap.add_argument("--x", nargs="+", default=["episodes"], choices=list(AXES), help="x axes, one panel each")
     ap.add_argument("--out", type=Path, help="PNG path (default: RUN_DIR/learning_curve.png)")
     args = ap.parse_args(argv)
-    out = args.out or args.runs[0] / "learning_curve.png"
+    first = args.runs[0]
+    out = args.out or (first.parent if first.suffix == ".csv" else first) / "learning_curve.png"
 
     def body() -> int:
-        plot_runs(args.runs, out)
+        plot_runs(args.runs, out, xs=tuple(args.x))
         print(f"wrote {out}")
         return 0
 

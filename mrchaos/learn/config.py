@@ -21,11 +21,13 @@ import yaml
 from mrchaos.core.errors import MrchaosError
 from mrchaos.env.tangram import EnvConfig
 from mrchaos.learn.policy import PolicyConfig
+from mrchaos.loggers.backends import LOGGER_BACKENDS
 from mrchaos.learn.precision import PRECISIONS
 from mrchaos.tasks.presets import PRESETS, get_preset
 from mrchaos.tasks.sampler import TaskConfig
 
 __all__ = [
+    "COLLECTOR_KINDS",
     "ConfigError",
     "CurriculumConfig",
     "CollectorConfig",
@@ -71,17 +73,41 @@ class CurriculumConfig:
             raise ValueError(f"curriculum.stages must be 'both', 'local' or 'global', got {self.stages!r}")
 
 
+#: Collector backends (see :mod:`mrchaos.learn.collection`).
+COLLECTOR_KINDS = ("sync", "multisync", "ray")
+
+
 @dataclass
 class CollectorConfig:
-    """Data collection: ``frames_per_batch`` world-steps per iteration, ``total_frames`` in all
-    (-1 = unbounded, stop on ``max_minutes``), ``kind`` "sync" (one env in this process) or
-    "multisync" (``workers`` processes)."""
+    """Data collection (see :mod:`mrchaos.learn.collection`).
+
+    Attributes:
+        frames_per_batch: world-steps per iteration, over all workers.
+        total_frames: stop after this many (-1 = unbounded, stop on ``max_minutes``).
+        max_minutes: stop after this many minutes of training (0 = no limit).
+        kind: "sync" (one env in this process), "multisync" (``workers`` processes) or
+            "ray" (``workers`` Ray actors).
+        workers: collector workers of "multisync" and "ray", each with ``env.num_worlds`` worlds.
+        worker_threads: CPUs per worker: Ray reserves them, and the worker's MuJoCo batch and
+            torch use that many threads.
+        ray_address: the Ray cluster to join ("auto", or "ray://host:10001"); unset, a local one
+            starts with ``workers x worker_threads`` CPUs.
+    """
 
     frames_per_batch: int = 2048
     total_frames: int = 2_000_000
     max_minutes: float = 0.0
     kind: str = "sync"
     workers: int = 2
+    worker_threads: int = 1
+    ray_address: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in COLLECTOR_KINDS:
+            raise ValueError(f"collector.kind must be one of {', '.join(COLLECTOR_KINDS)}, got {self.kind!r}")
+        if self.workers < 1 or self.worker_threads < 1:
+            raise ValueError(f"collector.workers and collector.worker_threads must be >= 1, got "
+                             f"{self.workers} and {self.worker_threads}")
 
 
 @dataclass
@@ -109,13 +135,26 @@ class OptimConfig:
 
 @dataclass
 class LoggerConfig:
-    """Where and how often to log: CSV every iteration, rerun images every ``image_every`` iterations."""
+    """Where and how often to log.
 
-    csv: bool = True
-    rerun: bool = True
+    Every run writes ``metrics.csv`` (one row per iteration; ``--resume`` and ``mrchaos-plot``
+    read it). ``backends`` adds loggers (:mod:`mrchaos.loggers.backends`): "rerun" (scalars,
+    events and, every ``image_every`` iterations, ``image_worlds`` worlds' images), and
+    TorchRL's "csv", "tensorboard", "wandb" and "mlflow" (scalars and the config). W&B and
+    MLflow run offline unless ``online``; ``project`` names the W&B project and MLflow experiment.
+    """
+
+    backends: list[str] = field(default_factory=lambda: ["rerun"])
+    online: bool = False
+    project: str = "mrchaos"
     image_every: int = 20
     image_worlds: int = 4
     progress: bool = True
+
+    def __post_init__(self) -> None:
+        unknown = [b for b in self.backends if b not in LOGGER_BACKENDS]
+        if unknown:
+            raise ValueError(f"logger.backends: unknown {unknown}; choose from {', '.join(LOGGER_BACKENDS)}")
 
 
 @dataclass
@@ -271,7 +310,8 @@ def upgrade_config_dict(data: dict) -> dict:
     Old flat keys (``env.view_extent``) become nested ones (``env.view.extent``); an old
     ``task.chaos: 0.5`` or ``task.cache: 1.0`` (mix weights, numbers) are told from the new
     ``task.chaos`` and ``task.cache`` groups (mappings) by their type. A config of an old release that names no task preset gets the
-    one whose piece sets hold its ``env.piece_set``.
+    one whose piece sets hold its ``env.piece_set``. The old ``logger.rerun`` switch becomes
+    ``logger.backends``.
     """
     data = copy.deepcopy(data)
     old_task = isinstance(data.get("task"), dict) and "preset" not in data["task"]
@@ -287,6 +327,14 @@ def upgrade_config_dict(data: dict) -> dict:
         if found and existing != value:
             raise ConfigError(f"both '{old}' (an old key) and '{new}' are set; keep '{new}'")
         _set_dotted(data, new, value)
+    logger = data.get("logger")
+    if isinstance(logger, dict) and ("csv" in logger or "rerun" in logger):
+        # Earlier releases had two switches; logger.csv was never read (metrics.csv is always written).
+        logger.pop("csv", None)
+        rerun = logger.pop("rerun", None)
+        if rerun is not None:
+            backends = [b for b in logger.get("backends", LoggerConfig().backends) if b != "rerun"]
+            logger["backends"] = (["rerun"] if rerun else []) + backends
     piece_set = _get_dotted(data, "env.piece_set")[1]
     if (old_task or "task" not in data) and piece_set is not None:
         for name, preset in PRESETS.items():

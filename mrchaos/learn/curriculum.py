@@ -5,17 +5,39 @@ poses and the episode ends after one placement, so the agent learns to place one
 piece well in context. Stage 2 ("global"): whole episodes from k = 0. The switch
 happens when the stage-1 reward has stopped improving: the best iteration of the
 last W is no better than the best before them plus epsilon.
+
+The stage itself lives in a :class:`CurriculumStage`, a module with one buffer that the
+trainer puts inside the collector's policy. Collector workers, whatever their backend,
+receive it with the policy weights, and the worker's env reads it from there at every
+reset (:meth:`CurriculumTransform.follow`), so the switch reaches processes and Ray
+actors that share no memory with the trainer.
 """
 
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
+from torch import nn
 from torchrl.envs import Transform
 
-__all__ = ["CurriculumTransform", "LOCAL", "GLOBAL"]
+__all__ = ["CurriculumStage", "CurriculumTransform", "LOCAL", "GLOBAL"]
 
 LOCAL, GLOBAL = 1, 2
+
+
+class CurriculumStage(nn.Module):
+    """The curriculum stage as a buffer, so that it travels with a module's weights.
+
+    Args:
+        stage: LOCAL or GLOBAL.
+    """
+
+    def __init__(self, stage: int = LOCAL) -> None:
+        super().__init__()
+        self.register_buffer("stage", torch.tensor(int(stage)))
+
+    def forward(self) -> torch.Tensor:
+        return self.stage
 
 
 class CurriculumTransform(Transform):
@@ -28,8 +50,7 @@ class CurriculumTransform(Transform):
         epsilon: required improvement over the window.
         min_iters: earliest switch.
         seed: seed of the transform's own generator (the k draws).
-        stage: a shared-memory scalar tensor holding the stage, so that envs in
-            collector worker processes follow the switch made by the trainer.
+        stage: the :class:`CurriculumStage` to read the stage from (default: one of its own).
     """
 
     def __init__(
@@ -40,7 +61,7 @@ class CurriculumTransform(Transform):
         epsilon: float = 0.01,
         min_iters: int = 20,
         seed: int = 0,
-        stage: torch.Tensor | None = None,
+        stage: CurriculumStage | None = None,
     ) -> None:
         super().__init__(in_keys=[], out_keys=[])
         if stages not in ("both", "local", "global"):
@@ -50,12 +71,24 @@ class CurriculumTransform(Transform):
         self.window = window
         self.epsilon = epsilon
         self.min_iters = min_iters
-        if stage is None:
-            stage = torch.tensor(GLOBAL if stages == "global" else LOCAL)
-        self.register_buffer("stage", stage)
+        self.follow(stage if stage is not None else CurriculumStage(GLOBAL if stages == "global" else LOCAL))
         self.register_buffer("switched_at", torch.tensor(-1))
         self.history: list[float] = []
         self.rng = torch.Generator().manual_seed(seed)
+
+    def follow(self, source: CurriculumStage) -> None:
+        """Read the stage from ``source`` from now on (e.g. the copy inside a worker's policy).
+
+        ``source`` is held by reference, not as a submodule: it belongs to the policy, and
+        a weight update may swap its buffer for a new tensor, so it is read at every reset."""
+        if not isinstance(source, CurriculumStage):
+            raise TypeError(f"the curriculum follows a CurriculumStage, got {type(source).__name__}")
+        object.__setattr__(self, "_source", source)
+
+    @property
+    def stage(self) -> torch.Tensor:
+        """The current stage (a scalar tensor; LOCAL or GLOBAL)."""
+        return self._source.stage
 
     @property
     def is_local(self) -> bool:

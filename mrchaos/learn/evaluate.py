@@ -43,11 +43,15 @@ Actor = Callable[[TangramEnv, TensorDict], torch.Tensor]
 
 
 def policy_actor(policy) -> Actor:
-    """Greedy actions of a TorchRL policy module."""
+    """Greedy actions of a TorchRL policy module, on the device its weights lie on (the env's
+    observations go there and the actions come back to the env's device)."""
+    weights = next(iter(policy.parameters()), None) if isinstance(policy, torch.nn.Module) else None
+    device = weights.device if weights is not None else torch.device("cpu")
 
     def act(env: TangramEnv, td: TensorDict) -> torch.Tensor:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            return policy(td.select("observation").clone())["action"]
+            obs = td.select("observation").clone().to(device)
+            return policy(obs)["action"].to(env.device)
 
     return act
 

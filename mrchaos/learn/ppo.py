@@ -11,7 +11,6 @@ from __future__ import annotations
 import csv
 import json
 import logging
-import math
 import signal
 import time
 from pathlib import Path
@@ -21,9 +20,7 @@ import torch
 import yaml
 from tensordict import TensorDict
 from tensordict.nn import TensorDictSequential
-from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
-from torchrl.envs import TransformedEnv
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
@@ -38,13 +35,15 @@ from mrchaos.learn.checkpoint import (
     policy_header,
     save_checkpoint,
 )
+from mrchaos.learn.collection import make_collector, make_env
 from mrchaos.learn.config import TrainConfig, config_to_dict, load_config
-from mrchaos.learn.curriculum import GLOBAL, LOCAL, CurriculumTransform
+from mrchaos.learn.curriculum import GLOBAL, LOCAL, CurriculumStage, CurriculumTransform
 from mrchaos.learn.evaluate import evaluate_random
 from mrchaos.learn.policy import build_actor_critic, compile_networks
 from mrchaos.learn.precision import Autocast, autocast, resolve_precision
+from mrchaos.loggers.backends import RunLoggers
 
-__all__ = ["Trainer", "make_env", "resume_config"]
+__all__ = ["Trainer", "resume_config"]
 
 log = logging.getLogger("mrchaos.learn.ppo")
 
@@ -55,16 +54,6 @@ CSV_FIELDS = [
     "iteration", "frames", "episodes", "minutes", "sps", "stage", "reward", "rela", "final",
     *LOSS_KEYS, "collect_s", "update_s", *(f"term_{k}" for k in REWARD_TERMS),
 ]
-
-
-def make_env(cfg: TrainConfig, seed: int, stage: torch.Tensor | None = None) -> TransformedEnv:
-    """The training env: batched tangram worlds with the curriculum transform."""
-    base = TangramEnv(cfg.env_config(), seed=seed, device=cfg.device)
-    cur = CurriculumTransform(
-        base.num_pieces, cfg.curriculum.stages, cfg.curriculum.window, cfg.curriculum.epsilon,
-        cfg.curriculum.min_iters, seed=seed + 1, stage=stage,
-    )
-    return TransformedEnv(base, cur)
 
 
 class Trainer:
@@ -83,19 +72,22 @@ class Trainer:
         self.ckpt_dir.mkdir(parents=True, exist_ok=True)
         torch.set_num_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
+        self.device = torch.device(cfg.device)
+        if self.device.type == "cuda":
+            torch.cuda.manual_seed_all(cfg.seed)
         self.stop_requested = False
 
         n = cfg.env.num_worlds
         if cfg.collector.frames_per_batch % n:
             raise ValueError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple "
                              f"of env.num_worlds ({n})")
-        # The stage lives in shared memory so that collector workers follow the switch.
-        self.stage = torch.tensor(GLOBAL if cfg.curriculum.stages == "global" else LOCAL).share_memory_()
+        # The curriculum stage: the env reads it, and the collection policy carries it to workers.
+        self.stage = CurriculumStage(GLOBAL if cfg.curriculum.stages == "global" else LOCAL)
         self.env = make_env(cfg, cfg.seed, stage=self.stage)
         self.curriculum: CurriculumTransform = self.env.transform
         base: TangramEnv = self.env.base_env
         self.base = base
-        self.actor_critic = build_actor_critic(cfg.policy, base.grid, base.view, base.action_spec).to(cfg.device)
+        self.actor_critic = build_actor_critic(cfg.policy, base.grid, base.view, base.action_spec).to(self.device)
         if cfg.init_from and not resume:
             self._initialise(cfg.init_from)
         if cfg.compile:
@@ -105,12 +97,13 @@ class Trainer:
         # What the collector stores: the action, its log-probability and the state's value
         # (the value head reads the trunk's output the actor pass already made), not the
         # intermediate features and logits (for the spatial net, gigabytes per batch).
-        self.precision = resolve_precision(cfg.precision, cfg.device)
+        self.precision = resolve_precision(cfg.precision, self.device)
         self.collect_policy = Autocast(
             TensorDictSequential(self.policy, self.actor_critic.get_value_head(),
                                  selected_out_keys=["action", "action_log_prob", "state_value"]),
-            self.precision, cfg.device,
+            self.precision,
         )
+        self.collect_policy.curriculum_stage = self.stage
         # GAE reads the values :meth:`values` writes: the collector's, shifted along time for
         # the next states, so that the trunk does not run again over the whole batch.
         self.advantage = GAE(gamma=cfg.loss.gamma, lmbda=cfg.loss.lmbda, value_network=None, average_gae=False)
@@ -134,38 +127,17 @@ class Trainer:
         self.minutes = 0.0
         if resume:
             self._restore(self.ckpt_dir / "last.pt")
-        self.collector = self._make_collector()
         self.csv_path = self.run_dir / "metrics.csv"
         if resume and self.csv_path.exists():
             self._truncate_metrics()
-        self.rerun = None
-        if cfg.logger.rerun:
-            from mrchaos.loggers.rerun_logger import RerunLogger
-
-            name = "recording.rrd" if not resume else f"recording.resume{self.iteration}.rrd"
-            self.rerun = RerunLogger(cfg.name, str(self.run_dir), file_name=name)
-            self.rerun.log_hparams(config_to_dict(cfg))
+        rerun_file = "recording.rrd" if not resume else f"recording.resume{self.iteration}.rrd"
+        self.loggers = RunLoggers(cfg.logger.backends, cfg.name, self.run_dir, rerun_file=rerun_file,
+                                  online=cfg.logger.online, project=cfg.logger.project)
+        self.loggers.log_hparams(config_to_dict(cfg))
+        # Last: worker processes and Ray actors start here.
+        self.collector = make_collector(cfg, self.env, self.collect_policy, self.stage)
 
     # ------------------------------------------------------------------ parts
-    def _make_collector(self):
-        cfg = self.cfg
-        if cfg.collector.kind == "multisync":
-            stage = self.stage
-
-            def factory(cfg=cfg, stage=stage):
-                return make_env(cfg, cfg.seed + 1000, stage=stage)
-
-            return MultiSyncCollector(
-                [factory] * cfg.collector.workers, self.collect_policy,
-                frames_per_batch=cfg.collector.frames_per_batch, total_frames=-1,
-                auto_register_policy_transforms=False,
-            )
-        if cfg.collector.kind != "sync":
-            raise ValueError(f"collector.kind must be 'sync' or 'multisync', got {cfg.collector.kind!r}")
-        return Collector(
-            self.env, self.collect_policy, frames_per_batch=cfg.collector.frames_per_batch, total_frames=-1,
-            auto_register_policy_transforms=False,
-        )
 
     def state(self) -> dict[str, Any]:
         """Everything a resume needs (tensors and builtin containers only)."""
@@ -178,7 +150,8 @@ class Trainer:
                 "stage": int(self.curriculum.stage), "switched_at": int(self.curriculum.switched_at),
                 **self.curriculum.extra_state(),
             },
-            "rng": {"torch": torch.get_rng_state(), "env": self.base.rng_state()},
+            "rng": {"torch": torch.get_rng_state(), "env": self.base.rng_state(),
+                    **({"cuda": torch.cuda.get_rng_state_all()} if self.device.type == "cuda" else {})},
             "iteration": self.iteration,
             "frames": self.frames,
             "episodes": self.episodes,
@@ -206,6 +179,8 @@ class Trainer:
         self.curriculum.switched_at.fill_(cur["switched_at"])
         self.curriculum.load_extra_state(cur)
         torch.set_rng_state(st["rng"]["torch"])
+        if self.device.type == "cuda" and "cuda" in st["rng"]:
+            torch.cuda.set_rng_state_all(st["rng"]["cuda"])
         env_rng = st["rng"]["env"]
         if not isinstance(env_rng, dict):  # checkpoints before the env's rng_state(): two entries
             env_rng = {"torch": env_rng, "numpy": st["rng"]["env_np"]}
@@ -255,20 +230,18 @@ class Trainer:
             if new:
                 w.writeheader()
             w.writerow({k: row.get(k, "") for k in CSV_FIELDS})
-        if self.rerun is not None:
-            for k in ("reward", "rela", "final", *LOSS_KEYS, "stage", "sps", *(f"term_{t}" for t in REWARD_TERMS)):
-                v = row.get(k)
-                if v is not None and not (isinstance(v, float) and math.isnan(v)):
-                    self.rerun.log_scalar(k, v, step=self.iteration)
-            every = max(1, self.cfg.logger.image_every)
-            if self.iteration % every == 1 or every == 1:
-                data = data.reshape(-1, data.shape[-1])  # (worlds, time), also for multi-process batches
-                k = min(self.cfg.logger.image_worlds, data.shape[0])
-                self.rerun.log_worlds(
-                    self.iteration, data["observation"][:k, -1].numpy(), data["action"][:k, -1].numpy(),
-                    data["next", "reward"][:k, -1, 0].numpy(), (self.base.grid.xs, self.base.grid.ys),
-                    self.base.view.extent,
-                )
+        for k in ("reward", "rela", "final", *LOSS_KEYS, "stage", "sps", *(f"term_{t}" for t in REWARD_TERMS)):
+            self.loggers.log_scalar(k, row.get(k), step=self.iteration)
+        rerun = self.loggers.get("rerun")
+        every = max(1, self.cfg.logger.image_every)
+        if rerun is not None and (self.iteration % every == 1 or every == 1):
+            data = data.reshape(-1, data.shape[-1])  # (worlds, time), also for multi-worker batches
+            k = min(self.cfg.logger.image_worlds, data.shape[0])
+            rerun.log_worlds(
+                self.iteration, data["observation"][:k, -1].cpu().numpy(), data["action"][:k, -1].cpu().numpy(),
+                data["next", "reward"][:k, -1, 0].cpu().numpy(), (self.base.grid.xs, self.base.grid.ys),
+                self.base.view.extent,
+            )
 
     # ------------------------------------------------------------------ algorithm
     def update(self, data: TensorDict) -> dict[str, float]:
@@ -285,7 +258,7 @@ class Trainer:
         for _ in range(cfg.loss.epochs):
             for _ in range(n_mb):
                 batch = self.buffer.sample()
-                with autocast(self.precision, cfg.device):
+                with autocast(self.precision, self.device):
                     out = self.loss(batch)
                 total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
                 self.optim.zero_grad(set_to_none=True)
@@ -294,7 +267,6 @@ class Trainer:
                 self.optim.step()
                 for k in sums:
                     sums[k] += float(out[k].detach()) / (cfg.loss.epochs * n_mb)
-        self.collector.update_policy_weights_()
         return sums
 
     def values(self, data: TensorDict) -> None:
@@ -311,12 +283,14 @@ class Trainer:
         need = data["next", "done"] & ~data["next", "terminated"]
         need[..., -1, :] = True
         need = need[..., 0]
-        with autocast(self.precision, self.cfg.device):
+        with autocast(self.precision, self.device):
             nxt[need] = self.value(data["next"][need].select("observation"))["state_value"].float()
         data.set(("next", "state_value"), nxt)
 
     def curriculum_step(self, reward: float) -> str | None:
-        """Switch to stage 2 when stage-1 reward plateaus or the time cap passes; the reason, if it switched."""
+        """Switch to stage 2 when stage-1 reward plateaus or the time cap passes; the reason, if it switched.
+
+        The stage reaches collector workers with the next policy weights."""
         cap = self.cfg.curriculum.max_minutes
         if int(self.curriculum.stage) != LOCAL:
             return None
@@ -326,7 +300,6 @@ class Trainer:
             why = f"time cap of {cap:g} min"
         else:
             return None
-        self.stage.fill_(int(self.curriculum.stage))
         return why
 
     @staticmethod
@@ -358,6 +331,7 @@ class Trainer:
         t_collect = time.perf_counter()
         try:
             for data in self.collector:
+                data = data.to(self.device)
                 collect_s = time.perf_counter() - t_collect
                 t_update = time.perf_counter()
                 self.iteration += 1
@@ -372,6 +346,8 @@ class Trainer:
                 why = self.curriculum_step(seen["reward"])
                 if why is not None:
                     self._event(f"curriculum: stage 1 -> 2 at iteration {self.iteration} ({self.frames} frames; {why})")
+                # New weights and the stage, to every worker before the next batch.
+                self.collector.update_policy_weights_()
                 update_s = time.perf_counter() - t_update
                 row = {
                     "iteration": self.iteration, "frames": self.frames, "episodes": self.episodes,
@@ -395,8 +371,7 @@ class Trainer:
                 bar.close()
             self.collector.shutdown()
             self.save()
-            if self.rerun is not None:
-                self.rerun.close()
+            self.loggers.close()
         return {"iteration": self.iteration, "frames": self.frames, "stopped": self.stop_requested}
 
     def _should_stop(self) -> bool:
@@ -414,8 +389,7 @@ class Trainer:
 
     def _event(self, msg: str) -> None:
         log.info(msg)
-        if self.rerun is not None:
-            self.rerun.log_text("events", msg, step=self.iteration)
+        self.loggers.log_text("events", msg, step=self.iteration)
 
     def finish(self, n_eval: int = 200) -> dict[str, float]:
         """Greedy evaluation on Random objects, written to ``eval.json``."""

@@ -47,14 +47,18 @@ def autocast(precision: str, device: str | torch.device = "cpu"):
 
 
 class Autocast(TensorDictModuleBase):
-    """A TensorDict module run under :func:`autocast` (the collector's policy in bf16)."""
+    """A TensorDict module run under :func:`autocast` (the collector's policy in bf16), on the
+    device its input lies on (a copy in a Ray actor acts on the CPU, the trainer's on its device)."""
 
-    def __init__(self, module: TensorDictModuleBase, precision: str, device: str | torch.device = "cpu") -> None:
+    def __init__(self, module: TensorDictModuleBase, precision: str) -> None:
         super().__init__()
         self.module = module
-        self.precision, self.device = precision, device
+        self.precision = precision
         self.in_keys, self.out_keys = module.in_keys, module.out_keys
 
     def forward(self, tensordict: TensorDictBase, *args, **kwargs) -> TensorDictBase:
-        with autocast(self.precision, self.device):
+        device = tensordict.device
+        if device is None:
+            device = next(iter(tensordict.values(True, True))).device
+        with autocast(self.precision, device):
             return self.module(tensordict, *args, **kwargs)
