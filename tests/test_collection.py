@@ -6,7 +6,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from tensordict import TensorDict
 
 from mrchaos.cli.train import main as train_main
 from mrchaos.learn.checkpoint import load_checkpoint
@@ -33,18 +32,13 @@ def test_worker_seeds_are_distinct_streams():
     assert len(set(seeds)) == len(seeds) and 0 not in seeds and 1 not in seeds
 
 
-def test_curriculum_follows_a_stage_whose_buffer_a_weight_update_swaps():
-    """The worker's transform reads the stage from the policy's copy at every reset, also after a
-    weight update has put a new tensor in the buffer (TensorDict.to_module swaps tensors)."""
-    policy = torch.nn.Module()
-    policy.curriculum_stage = CurriculumStage(LOCAL)
-    cur = CurriculumTransform(7, "both")
-    cur.follow(policy.curriculum_stage)
-    assert cur.is_local
-    sent = TensorDict.from_module(policy).clone()
-    sent["curriculum_stage", "stage"] = torch.tensor(GLOBAL)
-    sent.to_module(policy)
-    assert not cur.is_local and int(cur.stage) == GLOBAL
+def test_curriculum_reads_the_trainers_stage_at_every_reset():
+    stage = CurriculumStage(LOCAL)
+    cur = CurriculumTransform(7, "both", stage=stage)
+    assert cur.is_local and cur.stage is stage.stage
+    stage.stage.fill_(GLOBAL)
+    assert not cur.is_local
+    assert cur.force_switch(3) is False  # already in stage 2
     with pytest.raises(TypeError, match="CurriculumStage"):
         cur.follow(torch.tensor(1))
 
@@ -139,7 +133,7 @@ def test_tensorboard_run_is_read_back(tmp_path):
 
 def test_ray_smoke_run_passes_the_curriculum_switch_and_checkpoints(tmp_path):
     """Two Ray actors on a local 2-CPU cluster: the stage-2 switch, made in the trainer, reaches
-    them with the policy weights (their episodes grow from one step to seven)."""
+    them (their episodes grow from one step to seven)."""
     ray = require_extra("ray", "ray")
     try:
         rc = train_main([str(SMOKE), f"runs_dir={tmp_path}", "collector.kind=ray", "collector.workers=2",

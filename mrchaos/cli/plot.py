@@ -11,7 +11,6 @@ from pathlib import Path
 
 from mrchaos.cli.guard import run_command
 
-
 AXES = {"episodes": "training episodes", "frames": "frames (world-steps)", "minutes": "training minutes"}
 
 

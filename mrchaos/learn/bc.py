@@ -145,7 +145,8 @@ def train_bc(cfg: TrainConfig, run_dir: Path) -> dict:
     t0 = time.perf_counter()
     obs, labels = demonstrations(env, targets, dense=dense, overlap_limit=bc.overlap_limit)
     log.info("%d demonstration steps from %s in %.0f s", len(obs), what, time.perf_counter() - t0)
-    ac = build_actor_critic(cfg.policy, env.grid, env.view, env.action_spec)
+    device = torch.device(cfg.device)
+    ac = build_actor_critic(cfg.policy, env.grid, env.view, env.action_spec).to(device)
     policy = ac.get_policy_operator()
     opt = torch.optim.Adam(ac.parameters(), lr=cfg.optim.lr)
     rows: list[dict] = []
@@ -157,8 +158,10 @@ def train_bc(cfg: TrainConfig, run_dir: Path) -> dict:
             total, count = 0.0, 0
             for i in range(0, n, bc.minibatch_size):
                 idx = perm[i : i + bc.minibatch_size]
-                with autocast(cfg.precision, cfg.device):
-                    loss = supervised_loss(policy, obs[idx], labels[idx], dense, bc.temperature)
+                # The labelled data stays on the CPU (it can be large); minibatches go to the device.
+                with autocast(cfg.precision, device):
+                    loss = supervised_loss(policy, obs[idx].to(device), labels[idx].to(device), dense,
+                                           bc.temperature)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(ac.parameters(), cfg.optim.max_grad_norm)

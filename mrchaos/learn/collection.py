@@ -13,16 +13,17 @@ threads) and the chaos cache by absolute path, built once by the trainer before 
 start. The env always runs on the CPU; the policy runs on the run's device in this process
 and in worker processes, and on the CPU in Ray actors (which reserve no GPU).
 
-The curriculum stage reaches every worker inside the policy weights: the collector's policy
-holds the trainer's :class:`~mrchaos.learn.curriculum.CurriculumStage`, and
-:class:`CurriculumCollector` points each worker's curriculum transform at the copy that its
-policy receives.
+The curriculum stage reaches every worker: worker processes share the memory of the
+trainer's :class:`~mrchaos.learn.curriculum.CurriculumStage`; Ray actors, which share no
+memory with the trainer, get it from :func:`publish_stage` (TorchRL's ``map_fn`` on each
+:class:`CurriculumCollector`) before their next batch, as the policy weights.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +41,8 @@ __all__ = [
     "collector_devices",
     "make_collector",
     "make_env",
+    "prepare_weights",
+    "publish_stage",
     "worker_seed",
     "worker_config",
 ]
@@ -83,6 +86,16 @@ def _worker_env(cfg: TrainConfig, seed: int, stage: CurriculumStage | None = Non
     return make_env(cfg, seed, stage=stage)
 
 
+def prepare_weights(cfg: TrainConfig, module: torch.nn.Module) -> None:
+    """Lay the weights out as the collector's weight transport needs, in place (before the
+    optimiser sees them): Ray sends them over Gloo, which takes only contiguous tensors, and
+    the spatial net keeps its convolution weights channels-last."""
+    if cfg.collector.kind == "ray":
+        for t in [*module.parameters(), *module.buffers()]:
+            if not t.is_contiguous():
+                t.data = t.data.contiguous()
+
+
 def collector_devices(cfg: TrainConfig) -> dict[str, torch.device]:
     """The collector's devices: the env on the CPU; the policy and the stored batch on the run's
     device, except in Ray actors, which reserve no GPU and act on the CPU."""
@@ -96,18 +109,28 @@ def _find(root: Any, cls: type) -> Any | None:
 
 
 class CurriculumCollector(Collector):
-    """TorchRL's single-process collector, with the env's curriculum following the stage that
-    arrives in the policy weights (the class Ray instantiates in each actor)."""
+    """TorchRL's single-process collector with a handle on its env's curriculum (the class Ray
+    instantiates in each actor, so that the trainer can set the stage there)."""
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        env = self.env
-        transform = env.transform if isinstance(env, TransformedEnv) else None
-        stage = _find(self.policy, CurriculumStage)
-        if not isinstance(transform, CurriculumTransform) or stage is None:
-            raise TypeError("CurriculumCollector needs a TransformedEnv with a CurriculumTransform and a policy "
-                            "holding a CurriculumStage")
-        transform.follow(stage)
+    def set_curriculum_stage(self, stage: int) -> int:
+        """Set the stage of this collector's env (later resets follow it); returns it."""
+        env, transform = self.env, None
+        # The collector may have wrapped the env in transforms of its own.
+        while transform is None and isinstance(env, TransformedEnv):
+            transform, env = _find(env.transform, CurriculumTransform), env.base_env
+        if transform is None:
+            raise TypeError("CurriculumCollector's env has no CurriculumTransform")
+        transform.stage.fill_(int(stage))
+        return int(transform.stage)
+
+
+def publish_stage(collector: Any, stage: CurriculumStage) -> None:
+    """Send the trainer's curriculum stage to Ray actors (worker processes share its memory,
+    and a sync collector's env reads it directly)."""
+    if hasattr(collector, "remote_collectors"):
+        got = collector.map_fn("set_curriculum_stage", [(int(stage.stage),)] * collector.num_workers)
+        if set(got) != {int(stage.stage)}:
+            raise RuntimeError(f"Ray actors report curriculum stages {got}, expected {int(stage.stage)}")
 
 
 def make_collector(cfg: TrainConfig, env: TransformedEnv, policy: TensorDictModuleBase,
@@ -117,12 +140,10 @@ def make_collector(cfg: TrainConfig, env: TransformedEnv, policy: TensorDictModu
     Args:
         cfg: the experiment.
         env: the trainer's env (collected from with ``sync``; workers build their own).
-        policy: the collection policy; it must hold ``stage`` as a submodule.
+        policy: the collection policy.
         stage: the trainer's curriculum stage (put in shared memory for worker processes).
     """
     kind = cfg.collector.kind
-    if _find(policy, CurriculumStage) is not stage:
-        raise ValueError("the collection policy must hold the trainer's CurriculumStage")
     common = {"frames_per_batch": cfg.collector.frames_per_batch, "total_frames": -1, **collector_devices(cfg)}
     if kind == "sync":
         return Collector(env, policy, auto_register_policy_transforms=False, **common)
@@ -136,10 +157,11 @@ def make_collector(cfg: TrainConfig, env: TransformedEnv, policy: TensorDictModu
         stage.share_memory()
         factories = [functools.partial(_worker_env, wcfg, worker_seed(cfg.seed, i), stage) for i in range(workers)]
         return MultiSyncCollector(factories, policy, auto_register_policy_transforms=False, **common)
-    return _ray_collector(cfg, wcfg, policy, common)
+    return _ray_collector(cfg, wcfg, policy, stage, common)
 
 
-def _ray_collector(cfg: TrainConfig, wcfg: TrainConfig, policy: TensorDictModuleBase, common: dict) -> Any:
+def _ray_collector(cfg: TrainConfig, wcfg: TrainConfig, policy: TensorDictModuleBase, stage: CurriculumStage,
+                   common: dict) -> Any:
     try:
         import ray  # noqa: F401
     except ImportError:
@@ -150,8 +172,10 @@ def _ray_collector(cfg: TrainConfig, wcfg: TrainConfig, policy: TensorDictModule
         init = {"address": c.ray_address}
     else:
         init = {"num_cpus": c.workers * threads, "include_dashboard": False}
-    # A worker's env draws tasks from its own seed; the stage comes with the policy weights.
+    # A worker's env draws tasks from its own seed; the stage comes from publish_stage.
     factories = [functools.partial(_worker_env, wcfg, worker_seed(cfg.seed, i)) for i in range(c.workers)]
+    # RayCollector reads total_frames=-1 literally (no batch); the trainer decides when to stop.
+    common = {**common, "total_frames": sys.maxsize}
     collector = Collector(
         factories, policy, backend="ray", num_collectors=c.workers, sync=True,
         backend_options={
@@ -162,7 +186,8 @@ def _ray_collector(cfg: TrainConfig, wcfg: TrainConfig, policy: TensorDictModule
         },
         **common,
     )
-    # The actors were built from a pickled copy of the policy; send the weights (and the
-    # stage) once before the first batch, as after every update.
+    # The actors were built from a pickled copy of the policy and their own stage: send the
+    # weights and the stage (a resumed run may be in stage 2) before the first batch.
     collector.update_policy_weights_()
+    publish_stage(collector, stage)
     return collector

@@ -21,8 +21,8 @@ import yaml
 from mrchaos.core.errors import MrchaosError
 from mrchaos.env.tangram import EnvConfig
 from mrchaos.learn.policy import PolicyConfig
-from mrchaos.loggers.backends import LOGGER_BACKENDS
 from mrchaos.learn.precision import PRECISIONS
+from mrchaos.loggers.backends import LOGGER_BACKENDS
 from mrchaos.tasks.presets import PRESETS, get_preset
 from mrchaos.tasks.sampler import TaskConfig
 

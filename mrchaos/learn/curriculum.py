@@ -6,11 +6,9 @@ piece well in context. Stage 2 ("global"): whole episodes from k = 0. The switch
 happens when the stage-1 reward has stopped improving: the best iteration of the
 last W is no better than the best before them plus epsilon.
 
-The stage itself lives in a :class:`CurriculumStage`, a module with one buffer that the
-trainer puts inside the collector's policy. Collector workers, whatever their backend,
-receive it with the policy weights, and the worker's env reads it from there at every
-reset (:meth:`CurriculumTransform.follow`), so the switch reaches processes and Ray
-actors that share no memory with the trainer.
+The stage itself lives in a :class:`CurriculumStage`, a module with one buffer: the
+trainer's env reads it, collector worker processes share its memory, and Ray actors are
+sent it (:func:`mrchaos.learn.collection.publish_stage`).
 """
 
 from __future__ import annotations
@@ -26,7 +24,7 @@ LOCAL, GLOBAL = 1, 2
 
 
 class CurriculumStage(nn.Module):
-    """The curriculum stage as a buffer, so that it travels with a module's weights.
+    """The curriculum stage as a buffer (shareable between processes, kept in state dicts).
 
     Args:
         stage: LOCAL or GLOBAL.
@@ -77,10 +75,10 @@ class CurriculumTransform(Transform):
         self.rng = torch.Generator().manual_seed(seed)
 
     def follow(self, source: CurriculumStage) -> None:
-        """Read the stage from ``source`` from now on (e.g. the copy inside a worker's policy).
+        """Read the stage from ``source`` from now on (e.g. the trainer's, in shared memory).
 
-        ``source`` is held by reference, not as a submodule: it belongs to the policy, and
-        a weight update may swap its buffer for a new tensor, so it is read at every reset."""
+        ``source`` is held by reference, not as a submodule (it belongs to the trainer), and
+        read at every reset."""
         if not isinstance(source, CurriculumStage):
             raise TypeError(f"the curriculum follows a CurriculumStage, got {type(source).__name__}")
         object.__setattr__(self, "_source", source)

@@ -35,7 +35,7 @@ from mrchaos.learn.checkpoint import (
     policy_header,
     save_checkpoint,
 )
-from mrchaos.learn.collection import make_collector, make_env
+from mrchaos.learn.collection import make_collector, make_env, prepare_weights, publish_stage
 from mrchaos.learn.config import TrainConfig, config_to_dict, load_config
 from mrchaos.learn.curriculum import GLOBAL, LOCAL, CurriculumStage, CurriculumTransform
 from mrchaos.learn.evaluate import evaluate_random
@@ -81,7 +81,7 @@ class Trainer:
         if cfg.collector.frames_per_batch % n:
             raise ValueError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple "
                              f"of env.num_worlds ({n})")
-        # The curriculum stage: the env reads it, and the collection policy carries it to workers.
+        # The curriculum stage: the env reads it, and the collector hands it to its workers.
         self.stage = CurriculumStage(GLOBAL if cfg.curriculum.stages == "global" else LOCAL)
         self.env = make_env(cfg, cfg.seed, stage=self.stage)
         self.curriculum: CurriculumTransform = self.env.transform
@@ -90,6 +90,7 @@ class Trainer:
         self.actor_critic = build_actor_critic(cfg.policy, base.grid, base.view, base.action_spec).to(self.device)
         if cfg.init_from and not resume:
             self._initialise(cfg.init_from)
+        prepare_weights(cfg, self.actor_critic)
         if cfg.compile:
             compile_networks(self.actor_critic)
         self.policy = self.actor_critic.get_policy_operator()
@@ -103,7 +104,6 @@ class Trainer:
                                  selected_out_keys=["action", "action_log_prob", "state_value"]),
             self.precision,
         )
-        self.collect_policy.curriculum_stage = self.stage
         # GAE reads the values :meth:`values` writes: the collector's, shifted along time for
         # the next states, so that the trunk does not run again over the whole batch.
         self.advantage = GAE(gamma=cfg.loss.gamma, lmbda=cfg.loss.lmbda, value_network=None, average_gae=False)
@@ -348,6 +348,8 @@ class Trainer:
                     self._event(f"curriculum: stage 1 -> 2 at iteration {self.iteration} ({self.frames} frames; {why})")
                 # New weights and the stage, to every worker before the next batch.
                 self.collector.update_policy_weights_()
+                if why is not None:
+                    publish_stage(self.collector, self.stage)
                 update_s = time.perf_counter() - t_update
                 row = {
                     "iteration": self.iteration, "frames": self.frames, "episodes": self.episodes,
