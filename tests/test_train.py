@@ -160,6 +160,17 @@ def test_plot(tmp_path):
         "iteration,frames,episodes,stage,rela\n1,10,5,1,0.1\n2,20,10,1,0.2\n3,30,15,2,0.25\n4,40,16,2,0.3\n")
     assert plot_main([str(run)]) == 0
     assert (run / "learning_curve.png").stat().st_size > 1000
+    # A metrics.csv given as a file, against minutes and frames (one panel each).
+    csv_file = tmp_path / "kept.csv"
+    csv_file.write_text((run / "metrics.csv").read_text().replace("stage,rela", "stage,rela,minutes")
+                        .replace(",0.1\n", ",0.1,0.5\n").replace(",0.2\n", ",0.2,1.0\n")
+                        .replace(",0.25\n", ",0.25,1.5\n").replace(",0.3\n", ",0.3,2.0\n"))
+    out = tmp_path / "two.png"
+    assert plot_main([str(csv_file), str(run / "metrics.csv"), "--x", "minutes", "frames", "--out", str(out)]) != 0
+    assert plot_main([str(csv_file), "--x", "minutes", "frames", "--out", str(out)]) == 0
+    from PIL import Image
+
+    assert Image.open(out).size[0] > 1.8 * Image.open(run / "learning_curve.png").size[0]
 
 
 def test_behaviour_cloning_smoke(tmp_path, capsys):

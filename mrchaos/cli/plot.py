@@ -50,6 +50,8 @@ def plot_runs(run_dirs: list[Path], out: Path, window: int = 10, xs: tuple[str, 
         for run, rows in runs:
             if not rows or "rela" not in rows[0]:
                 raise ValueError(f"{run}: metrics.csv has no rela column (a supervised run?)")
+            if x not in rows[0]:
+                raise ValueError(f"{run}: metrics.csv has no {x} column")
             t = np.array([r[x] for r in rows])
             rela = np.array([r["rela"] for r in rows])
             ok = ~np.isnan(rela)
