@@ -14,7 +14,7 @@ start. The env always runs on the CPU; the policy runs on the run's device in th
 and in worker processes, and on the CPU in Ray actors (which reserve no GPU).
 
 The curriculum stage reaches every worker: worker processes share the memory of the
-trainer's :class:`~mrchaos.learn.curriculum.CurriculumStage`; Ray actors, which share no
+trainer's curriculum stage tensor; Ray actors, which share no
 memory with the trainer, get it from :func:`publish_stage` (TorchRL's ``map_fn`` on each
 :class:`CurriculumCollector`) before their next batch, as the policy weights.
 """
@@ -34,7 +34,7 @@ from torchrl.envs import TransformedEnv
 
 from mrchaos.env.tangram import TangramEnv
 from mrchaos.learn.config import ConfigError, TrainConfig
-from mrchaos.learn.curriculum import CurriculumStage, CurriculumTransform
+from mrchaos.learn.curriculum import CurriculumTransform
 
 __all__ = [
     "CurriculumCollector",
@@ -58,7 +58,7 @@ def worker_seed(seed: int, worker: int) -> int:
     return seed + 1000 * (worker + 1)
 
 
-def make_env(cfg: TrainConfig, seed: int, stage: CurriculumStage | None = None) -> TransformedEnv:
+def make_env(cfg: TrainConfig, seed: int, stage: torch.Tensor | None = None) -> TransformedEnv:
     """The training env: batched tangram worlds on the CPU with the curriculum transform."""
     base = TangramEnv(cfg.env_config(), seed=seed, device=ENV_DEVICE)
     cur = CurriculumTransform(
@@ -78,10 +78,10 @@ def worker_config(cfg: TrainConfig) -> TrainConfig:
     return dataclasses.replace(cfg, task=task, env=dataclasses.replace(cfg.env, physics=physics))
 
 
-def _worker_env(cfg: TrainConfig, seed: int, stage: CurriculumStage | None = None) -> TransformedEnv:
+def _worker_env(cfg: TrainConfig, seed: int, stage: torch.Tensor | None = None) -> TransformedEnv:
     # Runs inside the worker: its torch threads follow the CPUs it was given, and its policy
     # samples actions from the worker's own seed.
-    torch.set_num_threads(max(1, cfg.collector.worker_threads))
+    torch.set_num_threads(cfg.collector.worker_threads)
     torch.manual_seed(seed)
     return make_env(cfg, seed, stage=stage)
 
@@ -124,17 +124,17 @@ class CurriculumCollector(Collector):
         return int(transform.stage)
 
 
-def publish_stage(collector: Any, stage: CurriculumStage) -> None:
+def publish_stage(collector: Any, stage: torch.Tensor) -> None:
     """Send the trainer's curriculum stage to Ray actors (worker processes share its memory,
     and a sync collector's env reads it directly)."""
     if hasattr(collector, "remote_collectors"):
-        got = collector.map_fn("set_curriculum_stage", [(int(stage.stage),)] * collector.num_workers)
-        if set(got) != {int(stage.stage)}:
-            raise RuntimeError(f"Ray actors report curriculum stages {got}, expected {int(stage.stage)}")
+        got = collector.map_fn("set_curriculum_stage", [(int(stage),)] * collector.num_workers)
+        if set(got) != {int(stage)}:
+            raise RuntimeError(f"Ray actors report curriculum stages {got}, expected {int(stage)}")
 
 
 def make_collector(cfg: TrainConfig, env: TransformedEnv, policy: TensorDictModuleBase,
-                   stage: CurriculumStage) -> Any:
+                   stage: torch.Tensor) -> Any:
     """The run's collector (``cfg.collector.kind``), its policy weights already in every worker.
 
     Args:
@@ -154,20 +154,20 @@ def make_collector(cfg: TrainConfig, env: TransformedEnv, policy: TensorDictModu
     wcfg = worker_config(cfg)
     if kind == "multisync":
         # Worker processes share the stage's memory with the trainer.
-        stage.share_memory()
+        stage.share_memory_()
         factories = [functools.partial(_worker_env, wcfg, worker_seed(cfg.seed, i), stage) for i in range(workers)]
         return MultiSyncCollector(factories, policy, auto_register_policy_transforms=False, **common)
     return _ray_collector(cfg, wcfg, policy, stage, common)
 
 
-def _ray_collector(cfg: TrainConfig, wcfg: TrainConfig, policy: TensorDictModuleBase, stage: CurriculumStage,
+def _ray_collector(cfg: TrainConfig, wcfg: TrainConfig, policy: TensorDictModuleBase, stage: torch.Tensor,
                    common: dict) -> Any:
     try:
         import ray  # noqa: F401
     except ImportError:
         raise ConfigError("collector.kind: ray needs Ray: pip install -e '.[ray]'") from None
     c = cfg.collector
-    threads = max(1, c.worker_threads)
+    threads = c.worker_threads
     if c.ray_address:
         init = {"address": c.ray_address}
     else:

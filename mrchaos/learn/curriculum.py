@@ -6,36 +6,19 @@ piece well in context. Stage 2 ("global"): whole episodes from k = 0. The switch
 happens when the stage-1 reward has stopped improving: the best iteration of the
 last W is no better than the best before them plus epsilon.
 
-The stage itself lives in a :class:`CurriculumStage`, a module with one buffer: the
-trainer's env reads it, collector worker processes share its memory, and Ray actors are
-sent it (:func:`mrchaos.learn.collection.publish_stage`).
+The stage is a scalar tensor buffer: the trainer's env reads it, collector worker processes
+share its memory, and Ray actors are sent it (:func:`mrchaos.learn.collection.publish_stage`).
 """
 
 from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
-from torch import nn
 from torchrl.envs import Transform
 
-__all__ = ["CurriculumStage", "CurriculumTransform", "LOCAL", "GLOBAL"]
+__all__ = ["CurriculumTransform", "LOCAL", "GLOBAL"]
 
 LOCAL, GLOBAL = 1, 2
-
-
-class CurriculumStage(nn.Module):
-    """The curriculum stage as a buffer (shareable between processes, kept in state dicts).
-
-    Args:
-        stage: LOCAL or GLOBAL.
-    """
-
-    def __init__(self, stage: int = LOCAL) -> None:
-        super().__init__()
-        self.register_buffer("stage", torch.tensor(int(stage)))
-
-    def forward(self) -> torch.Tensor:
-        return self.stage
 
 
 class CurriculumTransform(Transform):
@@ -48,7 +31,8 @@ class CurriculumTransform(Transform):
         epsilon: required improvement over the window.
         min_iters: earliest switch.
         seed: seed of the transform's own generator (the k draws).
-        stage: the :class:`CurriculumStage` to read the stage from (default: one of its own).
+        stage: the scalar tensor to hold the stage in (the trainer's, which worker processes
+            share; default: one of its own).
     """
 
     def __init__(
@@ -59,7 +43,7 @@ class CurriculumTransform(Transform):
         epsilon: float = 0.01,
         min_iters: int = 20,
         seed: int = 0,
-        stage: CurriculumStage | None = None,
+        stage: torch.Tensor | None = None,
     ) -> None:
         super().__init__(in_keys=[], out_keys=[])
         if stages not in ("both", "local", "global"):
@@ -69,24 +53,12 @@ class CurriculumTransform(Transform):
         self.window = window
         self.epsilon = epsilon
         self.min_iters = min_iters
-        self.follow(stage if stage is not None else CurriculumStage(GLOBAL if stages == "global" else LOCAL))
+        if stage is None:
+            stage = torch.tensor(GLOBAL if stages == "global" else LOCAL)
+        self.register_buffer("stage", stage)
         self.register_buffer("switched_at", torch.tensor(-1))
         self.history: list[float] = []
         self.rng = torch.Generator().manual_seed(seed)
-
-    def follow(self, source: CurriculumStage) -> None:
-        """Read the stage from ``source`` from now on (e.g. the trainer's, in shared memory).
-
-        ``source`` is held by reference, not as a submodule (it belongs to the trainer), and
-        read at every reset."""
-        if not isinstance(source, CurriculumStage):
-            raise TypeError(f"the curriculum follows a CurriculumStage, got {type(source).__name__}")
-        object.__setattr__(self, "_source", source)
-
-    @property
-    def stage(self) -> torch.Tensor:
-        """The current stage (a scalar tensor; LOCAL or GLOBAL)."""
-        return self._source.stage
 
     @property
     def is_local(self) -> bool:

@@ -37,7 +37,7 @@ from mrchaos.learn.checkpoint import (
 )
 from mrchaos.learn.collection import make_collector, make_env, prepare_weights, publish_stage
 from mrchaos.learn.config import TrainConfig, config_to_dict, load_config
-from mrchaos.learn.curriculum import GLOBAL, LOCAL, CurriculumStage, CurriculumTransform
+from mrchaos.learn.curriculum import GLOBAL, LOCAL, CurriculumTransform
 from mrchaos.learn.evaluate import evaluate_random
 from mrchaos.learn.policy import build_actor_critic, compile_networks
 from mrchaos.learn.precision import Autocast, autocast, resolve_precision
@@ -82,7 +82,7 @@ class Trainer:
             raise ValueError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple "
                              f"of env.num_worlds ({n})")
         # The curriculum stage: the env reads it, and the collector hands it to its workers.
-        self.stage = CurriculumStage(GLOBAL if cfg.curriculum.stages == "global" else LOCAL)
+        self.stage = torch.tensor(GLOBAL if cfg.curriculum.stages == "global" else LOCAL)
         self.env = make_env(cfg, cfg.seed, stage=self.stage)
         self.curriculum: CurriculumTransform = self.env.transform
         base: TangramEnv = self.env.base_env
@@ -290,7 +290,7 @@ class Trainer:
     def curriculum_step(self, reward: float) -> str | None:
         """Switch to stage 2 when stage-1 reward plateaus or the time cap passes; the reason, if it switched.
 
-        The stage reaches collector workers with the next policy weights."""
+        The env reads the switched stage at once; :func:`publish_stage` takes it to Ray actors."""
         cap = self.cfg.curriculum.max_minutes
         if int(self.curriculum.stage) != LOCAL:
             return None
@@ -346,10 +346,9 @@ class Trainer:
                 why = self.curriculum_step(seen["reward"])
                 if why is not None:
                     self._event(f"curriculum: stage 1 -> 2 at iteration {self.iteration} ({self.frames} frames; {why})")
-                # New weights and the stage, to every worker before the next batch.
-                self.collector.update_policy_weights_()
-                if why is not None:
                     publish_stage(self.collector, self.stage)
+                # New weights to every worker before the next batch.
+                self.collector.update_policy_weights_()
                 update_s = time.perf_counter() - t_update
                 row = {
                     "iteration": self.iteration, "frames": self.frames, "episodes": self.episodes,
