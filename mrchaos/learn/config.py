@@ -22,7 +22,7 @@ from mrchaos.core.errors import MrchaosError
 from mrchaos.env.tangram import EnvConfig
 from mrchaos.learn.policy import PolicyConfig
 from mrchaos.learn.precision import PRECISIONS
-from mrchaos.loggers.backends import LOGGER_BACKENDS
+from mrchaos.loggers.backends import check_backends
 from mrchaos.tasks.presets import PRESETS, get_preset
 from mrchaos.tasks.sampler import TaskConfig
 
@@ -152,9 +152,7 @@ class LoggerConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        unknown = [b for b in self.backends if b not in LOGGER_BACKENDS]
-        if unknown:
-            raise ValueError(f"logger.backends: unknown {unknown}; choose from {', '.join(LOGGER_BACKENDS)}")
+        check_backends(self.backends)
 
 
 @dataclass

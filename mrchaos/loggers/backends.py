@@ -22,7 +22,7 @@ from torchrl.record.loggers import Logger, get_logger
 
 from mrchaos.core.errors import MrchaosError
 
-__all__ = ["LOGGER_BACKENDS", "LoggerUnavailable", "RunLoggers"]
+__all__ = ["LOGGER_BACKENDS", "LoggerUnavailable", "RunLoggers", "check_backends"]
 
 #: Backend names, and the package each needs (the ``[tensorboard]``, ``[wandb]``, ``[mlflow]`` extras).
 LOGGER_BACKENDS: dict[str, str | None] = {
@@ -36,6 +36,13 @@ LOGGER_BACKENDS: dict[str, str | None] = {
 
 class LoggerUnavailable(MrchaosError, ImportError):
     """A logger backend whose package is not installed."""
+
+
+def check_backends(backends: list[str]) -> None:
+    """Raise ValueError naming the backends that :data:`LOGGER_BACKENDS` does not know."""
+    unknown = [b for b in backends if b not in LOGGER_BACKENDS]
+    if unknown:
+        raise ValueError(f"logger.backends: unknown {unknown}; choose from {', '.join(LOGGER_BACKENDS)}")
 
 
 class RunLoggers:
@@ -52,9 +59,7 @@ class RunLoggers:
 
     def __init__(self, backends: list[str], name: str, run_dir: str | Path, rerun_file: str = "recording.rrd",
                  online: bool = False, project: str = "mrchaos") -> None:
-        unknown = [b for b in backends if b not in LOGGER_BACKENDS]
-        if unknown:
-            raise ValueError(f"logger.backends: unknown {unknown}; choose from {', '.join(LOGGER_BACKENDS)}")
+        check_backends(backends)
         for b in backends:
             pkg = LOGGER_BACKENDS[b]
             if pkg is not None and importlib.util.find_spec(pkg) is None:
