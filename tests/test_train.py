@@ -1,3 +1,4 @@
+import contextlib
 import csv
 import math
 import os
@@ -198,13 +199,19 @@ def test_multisync_collector_smoke(tmp_path):
     assert len(rows) == 6 and {r["stage"] for r in rows} <= {"1", "2"}
 
 
-def test_bf16_first_minibatch_ratios_are_one(tmp_path):
+def test_bf16_first_minibatch_ratios_are_one(tmp_path, monkeypatch):
     """Under bf16 autocast the update recomputes the collector's log-probabilities: ratio 1 before any step."""
+    from mrchaos.learn import precision
     from mrchaos.learn.ppo import Trainer
     from mrchaos.learn.precision import autocast
 
+    # Correctness, not speed: on a CPU without native bf16 oneDNN emulates it, and the run
+    # would fall back to fp32; the numerics under test are the same either way.
+    monkeypatch.setattr(precision, "cpu_has_bf16", lambda: True)
+
     cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "precision=bf16", "compile=true", "logger.backends=[]", "logger.progress=false"])
     trainer = Trainer(cfg, tmp_path / "bf16")
+    assert trainer.precision == "bf16"
     data = next(iter(trainer.collector))
     trainer.collector.shutdown()
     assert data["action_log_prob"].dtype == torch.float32
@@ -216,6 +223,19 @@ def test_bf16_first_minibatch_ratios_are_one(tmp_path):
     # And the update runs and gives finite fp32 losses.
     losses = trainer.update(data)
     assert all(math.isfinite(v) for v in losses.values())
+
+
+def test_bf16_falls_back_to_fp32_where_the_cpu_lacks_it(monkeypatch):
+    """A CPU without native bf16 (oneDNN would emulate it, many times slower) trains in fp32."""
+    from mrchaos.learn import precision
+
+    monkeypatch.setattr(precision, "cpu_has_bf16", lambda: False)
+    assert precision.resolve_precision("bf16", "cpu") == "fp32"
+    assert isinstance(precision.autocast("bf16", "cpu"), contextlib.nullcontext)
+    monkeypatch.setattr(precision, "cpu_has_bf16", lambda: True)
+    assert precision.resolve_precision("bf16", "cpu") == "bf16"
+    with pytest.raises(ValueError, match="precision"):
+        precision.resolve_precision("fp16")
 
 
 def test_collected_values_give_the_same_advantages_as_recomputing_them(tmp_path):

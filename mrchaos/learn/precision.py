@@ -1,10 +1,12 @@
 """Mixed precision: the network's matrix work in bfloat16, everything that is summed in fp32.
 
 ``precision: bf16`` runs the policy's forward and backward passes under
-``torch.autocast`` (bfloat16 on the CPU's AMX units, or on CUDA); the weights, Adam's
+``torch.autocast`` (bfloat16 on the CPU's AMX or AVX-512 BF16 units, or on CUDA); the weights, Adam's
 state, log-probabilities, ratios and losses stay fp32, because autocast leaves
 reductions, softmax and log-softmax in fp32 and the distribution casts its logits up.
-Where bfloat16 autocast is not available the run falls back to fp32 with one warning.
+Where bfloat16 has no hardware support (CUDA without it, or a CPU without AVX-512, where
+oneDNN emulates bfloat16: a PPO update measured 7x slower than fp32 on a Zen 3 EPYC) the run falls back
+to fp32 with one warning.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-__all__ = ["PRECISIONS", "Autocast", "autocast", "resolve_precision"]
+__all__ = ["PRECISIONS", "Autocast", "autocast", "cpu_has_bf16", "resolve_precision"]
 
 PRECISIONS = ("fp32", "bf16")
 log = logging.getLogger(__name__)
@@ -30,13 +32,18 @@ def resolve_precision(precision: str, device: str | torch.device = "cpu") -> str
     if precision == "fp32":
         return "fp32"
     kind = torch.device(device).type
-    ok = torch.cuda.is_bf16_supported() if kind == "cuda" else kind == "cpu"
+    ok = torch.cuda.is_bf16_supported() if kind == "cuda" else kind == "cpu" and cpu_has_bf16()
     if not ok:
         if kind not in _warned:
-            log.warning("bf16 autocast is not available on %s; training in fp32", kind)
+            log.warning("bf16 has no hardware support on this %s; training in fp32", kind)
             _warned.add(kind)
         return "fp32"
     return "bf16"
+
+
+def cpu_has_bf16() -> bool:
+    """True when oneDNN runs bfloat16 natively on this CPU (AVX-512 BF16 or AMX), not emulated."""
+    return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
 
 
 def autocast(precision: str, device: str | torch.device = "cpu"):
