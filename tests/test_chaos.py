@@ -51,10 +51,10 @@ def test_attract_makes_touching_clusters():
 
 
 def test_generate_mix_and_modes():
-    poses, modes = generate(PS, 100, np.random.default_rng(0), ChaosConfig(mode="mix", attract_fraction=0.5))
+    poses, modes, _ = generate(PS, 100, np.random.default_rng(0), ChaosConfig(mode="mix", attract_fraction=0.5))
     assert 30 < int(modes.sum()) < 70
     _no_overlap_in_view(poses)
-    _, m = generate(PS, 10, np.random.default_rng(0), ChaosConfig(mode="scatter"))
+    _, m, _ = generate(PS, 10, np.random.default_rng(0), ChaosConfig(mode="scatter"))
     assert (m == 0).all()
     with pytest.raises(ValueError, match="chaos mode"):
         ChaosConfig(mode="bogus")
@@ -66,8 +66,9 @@ def test_cache_round_trip_and_errors(tmp_path):
     cache.save(path)
     back = ChaosCache.load(path, PS)
     assert len(back) == 20 and np.allclose(back.poses, cache.poses, atol=1e-6)
-    s1 = back.sample(5, np.random.default_rng(0))
-    assert s1.shape == (5, 7, 3) and np.allclose(s1, back.sample(5, np.random.default_rng(0)))
+    s1, m1 = back.sample(5, np.random.default_rng(0))
+    assert s1.shape == (5, 7, 3) and np.allclose(s1, back.sample(5, np.random.default_rng(0))[0])
+    assert m1.shape == (5, 7) and not m1.any()
     path.write_bytes(b"garbage")
     with pytest.raises(ValueError, match="c.npz: not a valid chaos cache"):
         ChaosCache.load(path)

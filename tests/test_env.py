@@ -104,7 +104,7 @@ def _oracle_episode(env, exact, targets):
     step_cov = []
     for _ in range(env.num_pieces):
         if exact:
-            out = env.place_poses(oracle_poses(env))
+            out = env.place_poses(*oracle_poses(env))
         else:
             out = env.step(TensorDict(action=oracle_actions(env), batch_size=env.batch_size))["next"]
         step_cov.append(out["info", "step_coverage"][:, 0])

@@ -129,6 +129,8 @@ class Bench:
         scene_fps: film frames per simulated second.
         task: a preset of :data:`mrchaos.tasks.presets.PRESETS`: "tangram" (families Random, H-Normal,
             H-Hard, H-Fiendish), "cutlery" or "soda" (families Authored and Random).
+        flip: evaluate figures that need a chiral piece turned over instead of skipping them; the
+            baselines get an action grid with the flip (a checkpoint keeps its own grid).
     """
 
     def __init__(
@@ -145,6 +147,7 @@ class Bench:
         scenes: int = 0,
         scene_fps: float = 4.0,
         task: str = "tangram",
+        flip: bool = False,
     ) -> None:
         if placement not in ("teleport", "robot"):
             raise BenchError(f"placement must be 'teleport' or 'robot', got {placement!r}")
@@ -159,6 +162,7 @@ class Bench:
         self.seed = seed
         self.num_worlds = num_worlds
         self.task = task
+        self.flip = flip
         self.preset = check_task(task)
         self.piece_set = get_piece_set(self.preset.piece_set)
         if perturb_after is not None and not 0 <= perturb_after < len(self.piece_set):
@@ -170,17 +174,20 @@ class Bench:
             figure_sets = [FigureSet(task, goals, source=f"the {task} task's goals")]
         self.figure_sets = figure_sets
         rule = FamilyRule()
-        #: family -> groups of (piece set name, target poses, episode ids); a family may mix
-        #: piece sets of one family (soda goals of 3 to 6 cans).
-        self.targets: dict[str, list[tuple[str, np.ndarray, list[str]]]] = {}
+        #: family -> groups of (piece set name, target poses, mirrored flags, episode ids); a family
+        #: may mix piece sets of one family (soda goals of 3 to 6 cans).
+        self.targets: dict[str, list[tuple[str, np.ndarray, np.ndarray, list[str]]]] = {}
+        #: family -> how many of its figures need a piece turned over (evaluated only with ``flip``).
+        self.needs_flip: dict[str, int] = {}
         self.skipped = [(fid, why) for fs in figure_sets for fid, why in fs.rejected]
         figs: list[Figure] = []
         for fs in figure_sets:
             for f in fs.figures:
                 if f.piece_set.kind not in kinds:
                     self.skipped.append((f.id, f"{f.where}: piece set {f.piece_set.name} is not one of this task's"))
-                elif f.has_mirrored:
-                    self.skipped.append((f.id, f"{f.where}: needs a mirrored chiral piece (a suction robot cannot flip it)"))
+                elif f.has_mirrored and not flip:
+                    self.skipped.append((f.id, f"{f.where}: needs a mirrored chiral piece (a suction robot cannot "
+                                               "flip it; evaluate it with --flip)"))
                 else:
                     figs.append(f)
         rng = np.random.default_rng(seed)
@@ -191,10 +198,10 @@ class Bench:
                 groups = []
                 for name, k in zip(sets, counts):
                     if k > 0:
-                        poses = generate(get_piece_set(name), k, rng, self.env_config.task.chaos,
-                                         self.env_config.view)[0]
-                        groups.append((name, poses, [f"random-{i}" if len(sets) == 1 else f"random-{name}-{i}"
-                                                     for i in range(k)]))
+                        poses, _, mirrored = generate(get_piece_set(name), k, rng, self.env_config.task.chaos,
+                                                      self.env_config.view)
+                        groups.append((name, poses, mirrored, [f"random-{i}" if len(sets) == 1
+                                                               else f"random-{name}-{i}" for i in range(k)]))
                 if groups:
                     self.targets[fam] = groups
                 continue
@@ -202,9 +209,11 @@ class Bench:
             groups = []
             for name in dict.fromkeys(f.piece_set.name for f in chosen):
                 sub = [f for f in chosen if f.piece_set.name == name]
-                groups.append((name, np.stack([f.poses for f in sub]), [f.id for f in sub]))
+                groups.append((name, np.stack([f.poses for f in sub]), np.stack([f.mirrored for f in sub]),
+                               [f.id for f in sub]))
             if groups:
                 self.targets[fam] = groups
+                self.needs_flip[fam] = sum(f.has_mirrored for f in chosen)
 
     def make_env(self, spec: PolicySpec, piece_set: str | None = None) -> TangramEnv:
         """The env a policy is evaluated in: the task's settings, then the checkpoint's
@@ -213,6 +222,8 @@ class Bench:
                      "piece_set": piece_set or self.piece_set.name}
         if spec.state is not None:
             env.update(policy_env(spec.state))
+        elif self.flip:
+            env["grid"] = {"flip": True}
         cfg = config_from_dict({"env": env, "task": {"preset": self.task}}, f"bench env ({spec.name})").env_config()
         return TangramEnv(dataclasses.replace(cfg, task=cfg.task.given_targets()), seed=self.seed)
 
@@ -249,10 +260,10 @@ class Bench:
             try:
                 for fam, groups in self.targets.items():
                     parts = []
-                    for set_name, poses, ids in groups:
+                    for set_name, poses, mirrored, ids in groups:
                         if set_name not in envs:
                             envs[set_name] = self._policy_env(spec, set_name)
-                        parts.append(self._episodes(spec, fam, ids, poses, *envs[set_name], record))
+                        parts.append(self._episodes(spec, fam, ids, poses, mirrored, *envs[set_name], record))
                     res = concat_results(parts)
                     self.episodes[(spec.name, fam)] = res
                     per_fam[fam] = self.summary(res)
@@ -265,6 +276,8 @@ class Bench:
             results["policies"][spec.name] = {"label": spec.label, "families": per_fam}
         results["task"] = self.task
         results["placement"] = self.placement
+        results["flip"] = self.flip
+        results["needs_flip"] = {fam: self.needs_flip.get(fam, 0) for fam in results["counts"]}
         if self.perturb_after is not None:
             results["perturb"] = {"after_step": self.perturb_after, "distance_m": self.perturb_distance}
         return results
@@ -280,12 +293,12 @@ class Bench:
             env.film(self.scene_fps)
         return env, self.actor(spec, env), renderer
 
-    def _episodes(self, spec: PolicySpec, fam: str, ids: list[str], poses: np.ndarray, env: TangramEnv, act,
-                  renderer, record) -> EpisodeResults:
+    def _episodes(self, spec: PolicySpec, fam: str, ids: list[str], poses: np.ndarray, mirrored: np.ndarray,
+                  env: TangramEnv, act, renderer, record) -> EpisodeResults:
         """One episode per target of a group, filmed and recorded as asked."""
         film = self._filmer(env, renderer, spec.name, fam, ids, record) if renderer else None
         res = evaluate(env, poses, act, record_steps=record is not None, perturb_after=self.perturb_after,
-                       perturb_distance=self.perturb_distance, on_step=film)
+                       perturb_distance=self.perturb_distance, on_step=film, mirrored=mirrored)
         if record is not None:
             record.log_episodes(spec.name, fam, ids, res, env.piece_set.names)
         return res
@@ -372,6 +385,9 @@ def write_outputs(results: dict, families: list[str], out: Path) -> None:
     write_atomic(out / "results.csv", "\n".join(lines) + "\n")
     md = ["# mrchaos-bench results", "", "Mean ± 95 % interval, in percent. Rela and Final are the paper's metrics; "
           "IoU and sRela (strict Rela) are ours.", "", format_table(results, families, markdown=True)]
+    if any(results.get("needs_flip", {}).values()):
+        md += ["", "Figures that need a chiral piece turned over (evaluated with --flip): "
+               + ", ".join(f"{fam} {k}" for fam, k in results["needs_flip"].items())]
     if results["skipped"]:
         md += ["", f"Skipped {len(results['skipped'])} figures:"] + [f"- {fid}: {why}" for fid, why in results["skipped"]]
     write_atomic(out / "results.md", "\n".join(md) + "\n")

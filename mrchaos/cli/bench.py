@@ -33,6 +33,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--video", type=Path, help="with --placement robot: the first episode as a .gif or .mp4")
     ap.add_argument("--scenes", type=int, default=1, help="with --placement robot and --record or --video: episodes "
                     "per policy and family whose scene is rendered (a few frames per placement)")
+    ap.add_argument("--flip", action="store_true", help="evaluate figures that need a chiral piece turned over "
+                    "(skipped otherwise); random and oracle get the action grid's flip, a checkpoint keeps its own grid")
     ap.add_argument("--out", type=Path, default=Path("runs/bench"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--worlds", type=int, default=64, help="worlds evaluated at once")
@@ -67,7 +69,7 @@ def _bench(args: argparse.Namespace) -> int:
     bench = Bench(sets, families, args.random_objects, args.seed, args.placement, args.worlds,
                   robot_model=args.robot_model, perturb_after=args.perturb,
                   perturb_distance=args.perturb_distance, scenes=max(args.scenes, 1 if args.video else 0) if film else 0,
-                  task=args.task)
+                  task=args.task, flip=args.flip)
     for fid, why in bench.skipped:
         print(f"skipped {fid}: {why}", file=sys.stderr)
     recorder = None
@@ -90,6 +92,9 @@ def _bench(args: argparse.Namespace) -> int:
         write_video(bench.video_frames, args.video, fps=bench.scene_fps * 2)
         print(f"wrote {args.video} ({len(bench.video_frames)} frames, twice real time)")
     print(format_table(results, families))
+    if any(results["needs_flip"].values()):
+        print("figures that needed a piece turned over: "
+              + ", ".join(f"{fam} {k}" for fam, k in results["needs_flip"].items()))
     if bench.skipped:
         print(f"({len(bench.skipped)} figures skipped: see results.md)")
     print(f"wrote {args.out}/results.{{json,csv,md}} and contact_sheet.png in {time.perf_counter() - t0:.0f} s")
@@ -102,7 +107,7 @@ def _contact_sheet(bench, specs, out: Path, per_family: int = 6) -> None:
 
     pairs = []
     for fam, groups in bench.targets.items():
-        ids = [i for _, _, group_ids in groups for i in group_ids]
+        ids = [i for *_, group_ids in groups for i in group_ids]
         res = bench.episodes.get((specs[0].name, fam))
         if res is None:
             continue

@@ -8,13 +8,15 @@ Observation:
     ``observation`` uint8 (N, 2, H, W): the silhouette I_s stacked on the current
     top-down view I_tc. The step index is not observed.
 Action:
-    ``action`` int64 (N, 3): indices into the (x, y, theta) grid (``MultiCategorical``).
+    ``action`` int64 (N, 3): indices into the (x, y, theta) grid (``MultiCategorical``); with
+    ``env.grid.flip`` the theta index also says whether a chiral piece goes down turned over.
 Reward:
     the coverage of piece t's target slot by piece t (twins take the better slot),
     with the reference's shaping, penetration and angle switches from config; every
     term is in ``info.reward_terms`` (see :mod:`mrchaos.env.rewards`).
 Randomizations:
-    targets from the target sampler (chaos objects, cache, figures) or given at reset; optional action
+    targets from the target sampler (chaos objects, cache, figures) or given at reset, chiral pieces
+    face up or turned over (``task.chaos.mirror_prob``, figures' mirror flags); optional action
     noise and camera jitter; the number k of pieces pre-assembled at reset.
 Success:
     the episode terminates after the last piece (or after ``horizon`` placements);
@@ -112,15 +114,18 @@ class EnvConfig:
             raise ValueError(f"env.placement must be 'teleport' or 'robot', got {self.placement!r}")
         if self.num_worlds < 1:
             raise ValueError(f"env.num_worlds must be >= 1, got {self.num_worlds}")
+        if self.grid.flip and self.placement == "robot":
+            raise ValueError("env.grid.flip needs env.placement: teleport; the robot scene has no flip fixture yet")
 
 
 @dataclass
 class OracleTargets:
     """The privileged answer for every world's next placement: which piece and its exact
-    centroid pose (its own slot). Only oracles and tests may read it."""
+    centroid pose (its own slot), and whether it lies turned over. Only oracles and tests may read it."""
 
     piece: np.ndarray  # (N,) int64
     pose: np.ndarray  # (N, 3) x, y, theta
+    mirrored: np.ndarray  # (N,) bool
 
 
 class TangramEnv(EnvBase):
@@ -152,7 +157,7 @@ class TangramEnv(EnvBase):
         self._thickness = min(p.thickness for p in self.piece_set.pieces)
         robot = cfg.robot if cfg.placement == "robot" else None
         self._worlds = Worlds(self.piece_set, cfg.num_worlds, cfg.physics, SceneConfig(), self.view, robot)
-        self._sampler = TargetSampler(self.piece_set, cfg.task, figures, self.view)
+        self._sampler = TargetSampler(self.piece_set, cfg.task, figures, self.view, flip=cfg.grid.flip)
         self._camera = None
         if cfg.camera == "mujoco":
             from mrchaos.sim.camera import MujocoCamera
@@ -165,8 +170,10 @@ class TangramEnv(EnvBase):
         self._shaped = torch.as_tensor(areas > areas.min() + 1e-12)
         self._period = torch.as_tensor([pc.symmetry_period for pc in self.piece_set.pieces], dtype=torch.float32)
         self._twins = self.piece_set.twin_matrix()
+        self._chiral = self.piece_set.chiral
         # Per-world episode state.
         self._target = np.zeros((n, p, 3))
+        self._mirrored = np.zeros((n, p), dtype=bool)
         self._target_ids = torch.full((n, self.view.size, self.view.size), -1, dtype=torch.int8)
         self._silhouette = torch.zeros((n, self.view.size, self.view.size), dtype=torch.uint8)
         self.next_piece = np.zeros(n, dtype=np.int64)
@@ -251,31 +258,38 @@ class TangramEnv(EnvBase):
                 targets = tensordict.get("targets").cpu().numpy().astype(np.float64)
                 if targets.shape != (n, p, 3):
                     raise ValueError(f"reset targets must have shape ({n}, {p}, 3), got {targets.shape}")
+                mirrored = np.zeros((n, p), dtype=bool)
+                if "target_mirrored" in tensordict.keys():
+                    mirrored = tensordict.get("target_mirrored").cpu().numpy().astype(bool).reshape(n, p)
         if ((k < 0) | (k >= p)).any():
             raise ValueError(f"preassembled must be in [0, {p - 1}], got {k.tolist()}")
         if len(rows):
             if targets is None:
                 tasks = self._sampler.sample(len(rows), self._np_rng)
             else:
-                tasks = TargetBatch(targets[rows], np.full(len(rows), 2), rows.copy())
+                tasks = TargetBatch(targets[rows], np.full(len(rows), 2), rows.copy(), mirrored[rows])
             self._reset_rows(rows, tasks, k[rows], horizon[rows])
         return self._observe(fresh=True)
 
-    def reset_to(self, targets: np.ndarray) -> TensorDictBase:
-        """Reset every world to the given target poses (N, P, 3) instead of sampled ones (for evaluation)."""
-        return self.reset(TensorDict(targets=torch.as_tensor(np.asarray(targets, dtype=np.float64)),
-                                     batch_size=self.batch_size))
+    def reset_to(self, targets: np.ndarray, mirrored: np.ndarray | None = None) -> TensorDictBase:
+        """Reset every world to the given target poses (N, P, 3) instead of sampled ones (for evaluation);
+        ``mirrored`` (N, P) bool marks pieces whose target lies turned over."""
+        td = TensorDict(targets=torch.as_tensor(np.asarray(targets, dtype=np.float64)), batch_size=self.batch_size)
+        if mirrored is not None:
+            td.set("target_mirrored", torch.as_tensor(np.asarray(mirrored, dtype=bool)))
+        return self.reset(td)
 
     def _reset_rows(self, rows: np.ndarray, tasks: TargetBatch, k: np.ndarray, horizon: np.ndarray) -> None:
         self._target[rows] = tasks.poses
+        self._mirrored[rows] = tasks.mirrored
         self.target_source[rows] = tasks.source
         self.target_figure[rows] = tasks.figure
         ps = self.piece_set
-        ids = rasterize(ps.footprints(tasks.poses), self.view, parts=ps.raster_parts).ids
+        ids = rasterize(ps.footprints(tasks.poses, tasks.mirrored), self.view, parts=ps.raster_parts).ids
         self._target_ids[rows] = ids
         self._silhouette[rows] = silhouette_image(ids)
-        pre = [(np.flatnonzero(k > j), tasks.poses[k > j, j]) for j in range(self.num_pieces)]
-        self._worlds.reset(rows, [(rows[sub], poses) for sub, poses in pre])
+        pre = [(np.flatnonzero(k > j), tasks.poses[k > j, j], tasks.mirrored[k > j, j]) for j in range(self.num_pieces)]
+        self._worlds.reset(rows, [(rows[sub], poses, mirrored) for sub, poses, mirrored in pre])
         self.next_piece[rows] = k
         self.end_piece[rows] = np.where(horizon > 0, np.minimum(k + horizon, self.num_pieces), self.num_pieces)
         self._done[rows] = False
@@ -299,18 +313,26 @@ class TangramEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         a = self._check_action(tensordict.get("action"))
-        return self.place_poses(self.piece_set.to_centroid(self._upcoming(), self.grid.to_pose(a)))
+        piece = self._upcoming()
+        if not self.grid.flip:
+            return self.place_poses(self.piece_set.to_centroid(piece, self.grid.to_pose(a)))
+        # Turned over, a piece that is not chiral is the same set of poses: only chiral ones flip.
+        mirrored = self.grid.mirrored(a) & self._chiral[piece]
+        return self.place_poses(self.piece_set.to_centroid(piece, self.grid.to_pose(a), mirrored), mirrored)
 
     def _upcoming(self) -> np.ndarray:
         """(N,) the piece each world places next (the last one once its episode is over)."""
         return np.minimum(self.next_piece, self.num_pieces - 1)
 
-    def place_poses(self, poses: np.ndarray) -> TensorDictBase:
-        """Place the next piece of every world at continuous centroid poses (N, 3); return the step's outputs.
+    def place_poses(self, poses: np.ndarray, mirrored: np.ndarray | None = None) -> TensorDictBase:
+        """Place the next piece of every world at continuous centroid poses (N, 3), turned over where
+        ``mirrored`` (N,) bool; return the step's outputs.
 
         This is the step without the action grid: the exact oracle and the robot
         placement use it. Worlds whose episode is over are left unchanged.
         """
+        if mirrored is not None:
+            mirrored = np.asarray(mirrored, dtype=bool).reshape(self.cfg.num_worlds)
         n = self.cfg.num_worlds
         poses = np.asarray(poses, dtype=np.float64).reshape(n, 3)
         if not np.isfinite(poses).all():
@@ -327,7 +349,7 @@ class TangramEnv(EnvBase):
         failures = {k: np.zeros(n, dtype=bool) for k in ROBOT_FAILURES}
         if len(rows):
             t0 = time.perf_counter()
-            res = self._worlds.place(rows, piece[rows], poses[rows])
+            res = self._worlds.place(rows, piece[rows], poses[rows], None if mirrored is None else mirrored[rows])
             self._timings["physics"] += time.perf_counter() - t0
             physics[rows], penetration[rows] = res.physics, res.penetration
             if res.robot is not None:
@@ -358,12 +380,16 @@ class TangramEnv(EnvBase):
     def oracle_targets(self) -> OracleTargets:
         """The next piece of every world and its exact target pose: the solution, for oracles and tests."""
         piece = self._upcoming()
-        return OracleTargets(piece, self._target[np.arange(self.cfg.num_worlds), piece].copy())
+        rows = np.arange(self.cfg.num_worlds)
+        return OracleTargets(piece, self._target[rows, piece].copy(), self._mirrored[rows, piece].copy())
 
     def counterfactual(self) -> tuple[torch.Tensor, torch.Tensor]:
         """What placing every world's next piece at each grid action would earn, if it touched
         nothing, and how much of that footprint would lie on placed pieces: (N, T, Y, X) coverage
         and overlap in [0, 1] (see :mod:`mrchaos.env.dense`). Privileged, like :meth:`oracle_targets`."""
+        if self.grid.flip or self._mirrored.any():
+            raise ValueError("counterfactual (dense) targets do not cover turned-over pieces yet; "
+                             "use oracle targets with env.grid.flip")
         if self._counterfactual is None:
             self._counterfactual = CounterfactualGrid(self.piece_set, self.grid)
         return self._counterfactual.coverage(self._upcoming(), self._target, self._worlds.footprint,

@@ -23,7 +23,7 @@ from mrchaos.core.geometry import (
 from mrchaos.core.raster import View, rasterize
 from mrchaos.figures.pieces import PieceSet
 
-__all__ = ["Figure", "FigureError", "FigureSet", "figure_from_polygons", "FAMILIES"]
+__all__ = ["Figure", "FigureError", "FigureSet", "figure_from_polygons", "mirror_figure", "FAMILIES"]
 
 #: Evaluation families in the order the paper's Table I lists them.
 FAMILIES = ("Random", "H-Normal", "H-Hard", "H-Fiendish")
@@ -155,6 +155,14 @@ class Figure:
                     f"{self.where}: piece {self.piece_set.names[i]} lies {100 * (1 - inside / sp.area):.0f}% "
                     f"outside the {view.extent:.3f} m camera view"
                 )
+
+
+def mirror_figure(fig: Figure, suffix: str = "-mirrored") -> Figure:
+    """The figure reflected in the y axis (x -> -x): every chiral piece changes face, so a figure
+    built face up needs the chiral pieces turned over, and the other way round."""
+    polys = [fig.piece_polygon(i) * np.array([-1.0, 1.0]) for i in range(len(fig.piece_set))]
+    return figure_from_polygons(fig.piece_set, polys, fig.id + suffix, name=fig.name + suffix, family=fig.family,
+                                source=fig.source)
 
 
 def figure_from_polygons(

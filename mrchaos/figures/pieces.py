@@ -196,17 +196,20 @@ class PieceSet:
         """(P, 2) action origin of every piece in its centroid frame."""
         return np.array([p.action_origin for p in self.pieces], dtype=np.float64)
 
-    def to_centroid(self, piece: np.ndarray, pose: np.ndarray) -> np.ndarray:
-        """Poses (..., 3) of action origins -> centroid poses of the given pieces."""
-        return self._shift(piece, pose, -1.0)
+    def to_centroid(self, piece: np.ndarray, pose: np.ndarray, mirrored: np.ndarray | None = None) -> np.ndarray:
+        """Poses (..., 3) of action origins -> centroid poses of the given pieces (``mirrored``:
+        turned over, so the origin lies at its mirror image)."""
+        return self._shift(piece, pose, -1.0, mirrored)
 
-    def to_origin(self, piece: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    def to_origin(self, piece: np.ndarray, pose: np.ndarray, mirrored: np.ndarray | None = None) -> np.ndarray:
         """Centroid poses (..., 3) -> poses of the pieces' action origins."""
-        return self._shift(piece, pose, 1.0)
+        return self._shift(piece, pose, 1.0, mirrored)
 
-    def _shift(self, piece: np.ndarray, pose: np.ndarray, sign: float) -> np.ndarray:
+    def _shift(self, piece: np.ndarray, pose: np.ndarray, sign: float, mirrored: np.ndarray | None) -> np.ndarray:
         pose = np.asarray(pose, dtype=np.float64)
         off = self.action_origins()[np.asarray(piece)]
+        if mirrored is not None and np.any(mirrored):
+            off = off * np.where(np.asarray(mirrored)[..., None], [-1.0, 1.0], [1.0, 1.0])
         c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
         out = pose.copy()
         out[..., 0] += sign * (c * off[..., 0] - s * off[..., 1])
@@ -263,9 +266,21 @@ class PieceSet:
                 out[i * k + j, len(q) :] = q[-1]
         return out
 
+    @property
+    def chiral(self) -> np.ndarray:
+        """(P,) bool: pieces whose mirror image is another shape."""
+        return np.array([p.chiral for p in self.pieces])
+
     def footprints(self, poses: np.ndarray, mirrored: np.ndarray | None = None) -> np.ndarray:
-        """World polygons (..., P*K, Vmax, 2) of the parts of pieces at centroid poses (..., P, 3)."""
-        return rigid_transform(self.padded_parts(mirrored), np.repeat(np.asarray(poses), self.parts_per_piece, -2))
+        """World polygons (..., P*K, Vmax, 2) of the parts of pieces at centroid poses (..., P, 3);
+        ``mirrored`` (..., P) bool (or (P,) for all) selects the mirror image of a piece."""
+        poses = np.repeat(np.asarray(poses), self.parts_per_piece, -2)
+        if mirrored is None or np.asarray(mirrored).ndim <= 1 or not np.any(mirrored):
+            return rigid_transform(self.padded_parts(None if mirrored is None or np.asarray(mirrored).ndim > 1
+                                                     else mirrored), poses)
+        both = np.stack([self.padded_parts(), self.padded_parts(np.ones(len(self.pieces), dtype=bool))])
+        which = np.repeat(np.asarray(mirrored, dtype=np.int64), self.parts_per_piece, -1)
+        return rigid_transform(both[which, np.arange(which.shape[-1])], poses)
 
 
 def _tri(leg: float) -> np.ndarray:

@@ -106,6 +106,9 @@ def demonstrations(env: TangramEnv, targets: np.ndarray, actor=None, dense: bool
 def _targets(cfg: TrainConfig, rng: np.random.Generator, n_chaos: int, seed: int) -> tuple[np.ndarray, str]:
     """Target poses to demonstrate and a description: augmented figures, or chaos objects."""
     if cfg.bc.source == "chaos":
+        if cfg.task.chaos.mirror_prob > 0:
+            raise ValueError("bc: demonstrations of chaos objects with turned-over pieces are not built yet; "
+                             "set task.chaos.mirror_prob=0 or train with PPO")
         poses = generate(get_piece_set(cfg.env.piece_set), n_chaos, np.random.default_rng(seed), cfg.task.chaos,
                          cfg.env.view)[0]
         return poses, f"{n_chaos} chaos objects (seed {seed})"

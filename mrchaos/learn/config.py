@@ -290,6 +290,8 @@ RENAMED: dict[str, str] = {
     "task.cache_path": "task.cache.path",
     "task.cache_size": "task.cache.size",
     "task.cache_seed": "task.cache.seed",
+    # Not an old key: the short spelling of the flip, whose home is the action grid it widens.
+    "env.flip": "env.grid.flip",
 }
 
 

@@ -58,8 +58,11 @@ def policy_actor(policy) -> Actor:
 
 def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: bool = False,
              perturb_after: int | None = None, perturb_distance: float = 0.05,
-             on_step: Callable[[int, int, TensorDict], None] | None = None) -> EpisodeResults:
+             on_step: Callable[[int, int, TensorDict], None] | None = None,
+             mirrored: np.ndarray | None = None) -> EpisodeResults:
     """Run one episode per target on ``env`` (in chunks of its world count) and collect metrics.
+
+    ``mirrored`` (n, P) bool marks target pieces that lie turned over (default: none).
 
     With ``perturb_after = t``, the piece placed at step t is pushed ``perturb_distance``
     metres away right after it lands (the paper's Fig. 6C); the policy goes on from what
@@ -74,7 +77,11 @@ def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: b
         chunk = targets[start : start + nw]
         m = len(chunk)
         padded = np.concatenate([chunk, np.repeat(chunk[-1:], nw - m, 0)]) if m < nw else chunk
-        td = env.reset_to(padded)
+        faces = None
+        if mirrored is not None:
+            faces = mirrored[start : start + nw]
+            faces = np.concatenate([faces, np.repeat(faces[-1:], nw - m, 0)]) if m < nw else faces
+        td = env.reset_to(padded, faces)
         silhouettes = td["observation"][:m, 0].numpy().copy()
         cov = []
         fail = {k: torch.zeros(nw, dtype=torch.int64) for k in ROBOT_FAILURES}
@@ -132,8 +139,8 @@ def evaluate_random(policy, env_cfg: EnvConfig, n: int = 200, seed: int = 2024) 
     noise = dataclasses.replace(env_cfg.noise, action_xy=0.0, action_theta=0.0, camera_jitter=0.0)
     cfg = dataclasses.replace(env_cfg, num_worlds=min(n, 100), noise=noise, task=env_cfg.task.given_targets())
     env = TangramEnv(cfg, seed=seed)
-    targets = generate(env.piece_set, n, np.random.default_rng(seed), cfg.task.chaos, cfg.view)[0]
-    res = evaluate(env, targets, policy_actor(policy))
+    targets, _, mirrored = generate(env.piece_set, n, np.random.default_rng(seed), cfg.task.chaos, cfg.view)
+    res = evaluate(env, targets, policy_actor(policy), mirrored=mirrored)
     env.close()
     return {"n": n, "rela": float(res.rela.mean()), "final": float(res.final.mean()),
             "iou": float(res.iou.mean()), "strict_rela": float(res.strict_rela.mean())}

@@ -177,7 +177,7 @@ class PaperTrunk(nn.Module):
 class PaperHeads(nn.Module):
     def __init__(self, hidden: int, grid: ActionGrid) -> None:
         super().__init__()
-        self.x, self.y, self.t = nn.Linear(hidden, grid.nx), nn.Linear(hidden, grid.ny), nn.Linear(hidden, grid.ntheta)
+        self.x, self.y, self.t = nn.Linear(hidden, grid.nx), nn.Linear(hidden, grid.ny), nn.Linear(hidden, grid.norient)
 
     def forward(self, h: torch.Tensor):
         return self.x(h), self.y(h), self.t(h)
@@ -223,7 +223,7 @@ class SpatialHead(nn.Module):
     def __init__(self, channels: int, grid: ActionGrid, view: View, upsample: int = 1) -> None:
         super().__init__()
         # upsample > 1: each trunk cell predicts an upsample x upsample block of logits (pixel shuffle).
-        self.conv = nn.Conv2d(channels, grid.ntheta * upsample**2, 1)
+        self.conv = nn.Conv2d(channels, grid.norient * upsample**2, 1)
         self.shuffle = nn.PixelShuffle(upsample) if upsample > 1 else nn.Identity()
         # Normalised image coordinates of the grid (grid_sample: x right, y down, [-1, 1] at the edges).
         gx = torch.as_tensor(grid.xs, dtype=torch.float32) / (view.extent / 2)

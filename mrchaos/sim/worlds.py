@@ -8,6 +8,10 @@ tilted or stacked, never inside it. When the footprint is free, that settling
 would only drop the piece flat onto the table, so the world is written directly
 and its physics is skipped (the fast path); the share of each path is counted.
 
+A piece may also be set down turned over (its mirror image, for a chiral piece): the
+body is rotated half a turn about its own y axis, so its footprint is the outline mirrored
+in x, and physics treats it as the real upside-down prism.
+
 All worlds step together in one ``mujoco.batch.Batch`` on the machine's threads.
 """
 
@@ -77,6 +81,11 @@ def _quat_yaw(theta: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(theta / 2), np.zeros_like(theta), np.zeros_like(theta), np.sin(theta / 2)], -1)
 
 
+def _quat_turned_over(theta: np.ndarray) -> np.ndarray:
+    """Yaw theta after half a turn about the body's y axis: qz(theta) * qy(pi)."""
+    return np.stack([np.zeros_like(theta), -np.sin(theta / 2), np.cos(theta / 2), np.zeros_like(theta)], -1)
+
+
 def _quat_to_mat(q: np.ndarray) -> np.ndarray:
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     return np.stack(
@@ -87,6 +96,10 @@ def _quat_to_mat(q: np.ndarray) -> np.ndarray:
         ],
         -2,
     )
+
+
+def _rows_of(mask: np.ndarray | None, idx: np.ndarray) -> np.ndarray | None:
+    return None if mask is None else mask[idx]
 
 
 class Worlds:
@@ -125,6 +138,7 @@ class Worlds:
         self._dadr = self.model.jnt_dofadr[self.model.body_jntadr[bodies]]
         # Geometry works on convex parts, K per piece (K = 1 for convex sets): (P*K, V, 2).
         self._parts = piece_set.padded_parts()
+        self._parts_mirrored = piece_set.padded_parts(np.ones(p, dtype=bool))
         self._k = piece_set.parts_per_piece
         self._part_piece = piece_set.part_piece
         self._raster_parts = piece_set.raster_parts
@@ -150,10 +164,14 @@ class Worlds:
 
     # ----------------------------------------------------------------- state io
     def _write_flat(
-        self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, z: np.ndarray, vz: float = 0.0
+        self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, z: np.ndarray, vz: float = 0.0,
+        mirrored: np.ndarray | None = None,
     ) -> None:
         cols = self._qadr[piece][:, None] + np.arange(7)
-        q = np.concatenate([pose[:, :2], z[:, None], _quat_yaw(pose[:, 2])], 1)
+        quat = _quat_yaw(pose[:, 2])
+        if mirrored is not None and mirrored.any():
+            quat = np.where(mirrored[:, None], _quat_turned_over(pose[:, 2]), quat)
+        q = np.concatenate([pose[:, :2], z[:, None], quat], 1)
         self.qpos[rows[:, None], cols] = q
         vcols = self._dadr[piece][:, None] + np.arange(6)
         self.qvel[rows[:, None], vcols] = 0.0
@@ -165,9 +183,15 @@ class Worlds:
         rot = _quat_to_mat(q[..., 3:])  # (R, Q, 3, 3)
         verts = np.einsum("rpij,pvj->rpvi", rot, self._prism) + q[..., None, :3]  # (R, Q, 2V, 3)
         self.top[rows] = verts[..., 2].max(-1).reshape(len(rows), -1, self._k).max(-1)
-        tilted = rot[..., 2, 2] < math.cos(self.cfg.flat_tilt)
+        up = rot[..., 2, 2]
+        tilted = np.abs(up) < math.cos(self.cfg.flat_tilt)
         yaw = np.arctan2(rot[..., 1, 0], rot[..., 0, 0])
-        flat = rigid_transform(self._parts[None], np.stack([q[..., 0], q[..., 1], yaw], -1))  # (R, Q, V, 2)
+        parts = self._parts[None]
+        over = up < 0  # lying turned over: the body's x axis points back along -yaw
+        if over.any():
+            yaw = np.where(over, np.arctan2(-rot[..., 1, 0], -rot[..., 0, 0]), yaw)
+            parts = np.where(over[..., None, None], self._parts_mirrored[None], parts)
+        flat = rigid_transform(parts, np.stack([q[..., 0], q[..., 1], yaw], -1))  # (R, Q, V, 2)
         fp = np.concatenate([flat, np.repeat(flat[..., -1:, :], self._v, axis=2)], 2)
         for r, i in zip(*np.nonzero(tilted)):
             hull = shapely.MultiPoint(verts[r, i, :, :2]).convex_hull
@@ -181,24 +205,28 @@ class Worlds:
     def reset(self, rows: np.ndarray, preassembled: list[np.ndarray] | None = None) -> None:
         """Return the worlds of ``rows`` to the home keyframe, then put pieces already assembled.
 
-        ``preassembled[k]`` is a (len(rows), 3) target pose for piece k, for the rows
-        whose count includes k; pass ``None`` for no pieces. Assembled pieces lie flat
-        on the table (targets do not overlap, so no physics is needed).
+        ``preassembled[k]`` is ``(rows_k, poses_k)`` or ``(rows_k, poses_k, mirrored_k)``: the
+        worlds whose count includes piece k, its target poses there, and whether it lies turned
+        over; pass ``None`` for no pieces. Assembled pieces lie flat on the table (targets do
+        not overlap, so no physics is needed).
         """
         rows = np.asarray(rows, dtype=np.int64)
         if len(rows) == 0:
             return
         self.batch.reset(ids=rows, keyframe=0)
         self.placed[rows] = False
-        for k, (sub, poses) in enumerate(preassembled or []):
+        for k, (sub, poses, *mirrored) in enumerate(preassembled or []):
             if len(sub):
                 piece = np.full(len(sub), k)
-                self._write_flat(sub, piece, poses, np.full(len(sub), self._thick[k] / 2))
+                self._write_flat(sub, piece, poses, np.full(len(sub), self._thick[k] / 2),
+                                 mirrored=mirrored[0] if mirrored else None)
                 self.placed[sub, k] = True
         self._refresh(rows)
 
-    def place(self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray) -> PlacementResult:
-        """Place ``piece[i]`` of world ``rows[i]`` at planar ``pose[i]`` and settle.
+    def place(self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray,
+              mirrored: np.ndarray | None = None) -> PlacementResult:
+        """Place ``piece[i]`` of world ``rows[i]`` at planar ``pose[i]`` and settle; ``mirrored[i]``
+        sets it down turned over.
 
         Returns which worlds needed physics and how deep the piece ends inside another.
         """
@@ -206,19 +234,25 @@ class Worlds:
         piece = np.asarray(piece, dtype=np.int64)
         m = len(rows)
         cols = piece[:, None] * self._k + np.arange(self._k)  # (m, K) the piece's parts
-        foot = rigid_transform(self._parts[cols], pose[:, None])  # (m, K, V, 2)
+        parts = self._parts[cols]
+        if mirrored is not None and mirrored.any():
+            parts = np.where(mirrored[:, None, None, None], self._parts_mirrored[cols], parts)
+        foot = rigid_transform(parts, pose[:, None])  # (m, K, V, 2)
         others = self.placed[rows].copy()
         others[np.arange(m), piece] = False
         depth = self._piece_depth(foot, rows)  # (m, P)
         under = others & (depth > self.cfg.free_tolerance)
         if self.executor is not None:
+            if mirrored is not None and mirrored.any():
+                raise ValueError("robot placement cannot turn a piece over yet (no flip fixture in the scene); "
+                                 "use env.placement: teleport with env.grid.flip")
             return self._place_robot(rows, piece, pose, under, depth)
         free = ~under.any(1)
         half = self._thick[piece] / 2
         # Fast path: the piece lands flat on the table, exactly where a settle would put it.
         fr = np.flatnonzero(free)
         if len(fr):
-            self._write_flat(rows[fr], piece[fr], pose[fr], half[fr])
+            self._write_flat(rows[fr], piece[fr], pose[fr], half[fr], mirrored=_rows_of(mirrored, fr))
         # Physics path: drop from just above the highest surface the piece really lands on;
         # slivers of overlap (<= push_depth) do not hold it up, contact pushes them apart.
         ph = np.flatnonzero(~free)
@@ -229,12 +263,13 @@ class Worlds:
             gap = np.where(deep.any(1), self.cfg.release_gap, 0.0)
             # Released moving down, as from a gripper, which also keeps MuJoCo from
             # putting the piece to sleep before it has fallen.
-            self._write_flat(rows[ph], piece[ph], pose[ph], floor + gap + half[ph], vz=-self.cfg.release_speed)
+            self._write_flat(rows[ph], piece[ph], pose[ph], floor + gap + half[ph], vz=-self.cfg.release_speed,
+                             mirrored=_rows_of(mirrored, ph))
             self.batch.step(ids=rows[ph], nstep=self.cfg.settle_steps)
             bad = ~np.isfinite(self.qpos[rows[ph]]).all(1)
             if bad.any():  # a diverged world: fall back to the plain placement
                 b = ph[bad]
-                self._write_flat(rows[b], piece[b], pose[b], half[b])
+                self._write_flat(rows[b], piece[b], pose[b], half[b], mirrored=_rows_of(mirrored, b))
         self.placed[rows, piece] = True
         # A fast-path world changed by one flat piece; physics worlds may have moved anything.
         if len(fr):

@@ -45,6 +45,8 @@ class ChaosConfig:
             The default matches the action grid's 45 degrees.
         contact_gap: the attraction stops when no piece can move this far (m).
         max_tries: rejection-sampling rounds per piece before giving up.
+        mirror_prob: chance that a chiral piece lies turned over (its mirror image), so that a
+            policy with a flip must read the face from the silhouette; 0 keeps every piece face up.
     """
 
     mode: str = "mix"
@@ -54,12 +56,15 @@ class ChaosConfig:
     angle_step: float = math.pi / 4
     contact_gap: float = 2e-4
     max_tries: int = 200
+    mirror_prob: float = 0.0
 
     def __post_init__(self) -> None:
         if self.mode not in MODES + ("mix",):
             raise ValueError(f"chaos mode must be one of {MODES + ('mix',)}, got {self.mode!r}")
         if not 0.0 <= self.attract_fraction <= 1.0:
             raise ValueError(f"attract_fraction must be in [0, 1], got {self.attract_fraction}")
+        if not 0.0 <= self.mirror_prob <= 1.0:
+            raise ValueError(f"mirror_prob must be in [0, 1], got {self.mirror_prob}")
 
     def bound(self, view: View) -> float:
         """Largest |x| or |y| (m) a vertex may reach in ``view``."""
@@ -74,12 +79,13 @@ def _draw_angles(rng: np.random.Generator, shape: tuple[int, ...], step: float) 
 
 
 def scatter(piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosConfig = ChaosConfig(),
-            view: View = View()) -> np.ndarray:
-    """(n, P, 3) poses: pieces at uniformly random poses, non-overlapping, inside the view."""
-    parts = _piece_parts(piece_set)  # (P, K, V, 2)
+            view: View = View(), mirrored: np.ndarray | None = None) -> np.ndarray:
+    """(n, P, 3) poses: pieces at uniformly random poses, non-overlapping, inside the view;
+    ``mirrored`` (n, P) bool: pieces that lie turned over."""
+    parts = _object_parts(piece_set, n, mirrored)  # (n, P, K, V, 2)
     p = len(piece_set)
     poses = np.zeros((n, p, 3))
-    polys = np.zeros((n,) + parts.shape)
+    polys = np.zeros(parts.shape)
     bound = cfg.bound(view)
     for k in range(p):
         todo = np.arange(n)
@@ -88,7 +94,7 @@ def scatter(piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosCon
             cand = np.concatenate(
                 [rng.uniform(-cfg.workspace, cfg.workspace, (m, 2)), _draw_angles(rng, (m, 1), cfg.angle_step)], 1
             )
-            poly = rigid_transform(parts[k], cand[:, None])  # (m, K, V, 2)
+            poly = rigid_transform(parts[todo, k], cand[:, None])  # (m, K, V, 2)
             ok = np.abs(poly).max((1, 2, 3)) <= bound
             if k > 0:
                 ok &= _clear(poly, polys[todo, :k])
@@ -112,15 +118,17 @@ def attract(
     cfg: ChaosConfig = ChaosConfig(),
     view: View = View(),
     start: np.ndarray | None = None,
+    mirrored: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(n, P, 3) poses: a scatter pulled together into a touching cluster, then centred."""
-    parts = _piece_parts(piece_set)
+    """(n, P, 3) poses: a scatter pulled together into a touching cluster, then centred;
+    ``mirrored`` (n, P) bool: pieces that lie turned over."""
+    parts = _object_parts(piece_set, n, mirrored)
     p = len(piece_set)
-    poses = scatter(piece_set, n, rng, cfg, view) if start is None else np.array(start, dtype=np.float64)
+    poses = scatter(piece_set, n, rng, cfg, view, mirrored) if start is None else np.array(start, dtype=np.float64)
     # The point of attraction: a random point near the centre, so clusters are not all alike.
     centre = rng.uniform(-0.02, 0.02, (n, 1, 2))
     step = np.full(n, 0.01)
-    polys = rigid_transform(parts[None], poses[:, :, None])  # (n, P, K, V, 2)
+    polys = rigid_transform(parts, poses[:, :, None])  # (n, P, K, V, 2)
     active = np.ones(n, dtype=bool)
     while active.any():
         moved = np.zeros(n, dtype=bool)
@@ -155,10 +163,15 @@ def attract(
     return poses
 
 
-def _piece_parts(piece_set: PieceSet) -> np.ndarray:
-    """(P, K, V, 2) convex parts of every piece."""
+def _object_parts(piece_set: PieceSet, n: int, mirrored: np.ndarray | None) -> np.ndarray:
+    """(n, P, K, V, 2) convex parts of every piece of n objects, mirrored where ``mirrored`` (n, P)."""
+    p, k = len(piece_set), piece_set.parts_per_piece
     parts = piece_set.padded_parts()
-    return parts.reshape(len(piece_set), piece_set.parts_per_piece, *parts.shape[1:])
+    parts = np.broadcast_to(parts.reshape(p, k, *parts.shape[1:]), (n, p, k, *parts.shape[1:]))
+    if mirrored is None or not np.any(mirrored):
+        return parts
+    turned = piece_set.padded_parts(np.ones(p, dtype=bool)).reshape(p, k, *parts.shape[3:])
+    return np.where(np.asarray(mirrored)[:, :, None, None, None], turned[None], parts)
 
 
 def _clear(poly: np.ndarray, others: np.ndarray) -> np.ndarray:
@@ -169,20 +182,24 @@ def _clear(poly: np.ndarray, others: np.ndarray) -> np.ndarray:
 
 def generate(
     piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosConfig = ChaosConfig(), view: View = View()
-) -> tuple[np.ndarray, np.ndarray]:
-    """(n, P, 3) poses and (n,) int8 mode index (0 scatter, 1 attract) drawn as ``cfg`` says, inside ``view``."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(n, P, 3) poses, (n,) int8 mode index (0 scatter, 1 attract) and (n, P) bool mirrored
+    (chiral pieces turned over), drawn as ``cfg`` says, inside ``view``."""
     if cfg.mode == "scatter":
         modes = np.zeros(n, dtype=np.int8)
     elif cfg.mode == "attract":
         modes = np.ones(n, dtype=np.int8)
     else:
         modes = (rng.random(n) < cfg.attract_fraction).astype(np.int8)
+    mirrored = np.zeros((n, len(piece_set)), dtype=bool)
+    if cfg.mirror_prob > 0:  # no draw otherwise, so that objects without mirroring stay as they were
+        mirrored = (rng.random((n, len(piece_set))) < cfg.mirror_prob) & piece_set.chiral
     poses = np.zeros((n, len(piece_set), 3))
     for m, fn in enumerate((scatter, attract)):
         idx = np.flatnonzero(modes == m)
         if len(idx):
-            poses[idx] = fn(piece_set, len(idx), rng, cfg, view)
-    return poses, modes
+            poses[idx] = fn(piece_set, len(idx), rng, cfg, view, mirrored=mirrored[idx])
+    return poses, modes, mirrored
 
 
 class ChaosCache:
@@ -192,14 +209,20 @@ class ChaosCache:
         poses: (N, P, 3) target poses.
         modes: (N,) generator index per object (0 scatter, 1 attract).
         piece_set: name of the piece set the poses belong to.
+        mirrored: (N, P) bool, pieces lying turned over (default: none; caches written before
+            the flip have no such array).
     """
 
-    def __init__(self, poses: np.ndarray, modes: np.ndarray, piece_set: str) -> None:
+    def __init__(self, poses: np.ndarray, modes: np.ndarray, piece_set: str, mirrored: np.ndarray | None = None) -> None:
         self.poses = np.asarray(poses, dtype=np.float64)
         self.modes = np.asarray(modes, dtype=np.int8)
         self.piece_set = piece_set
-        if self.poses.ndim != 3 or self.poses.shape[-1] != 3 or len(self.modes) != len(self.poses):
-            raise ValueError(f"chaos cache: inconsistent shapes {self.poses.shape} / {self.modes.shape}")
+        self.mirrored = (np.zeros(self.poses.shape[:2], dtype=bool) if mirrored is None
+                         else np.asarray(mirrored, dtype=bool))
+        if (self.poses.ndim != 3 or self.poses.shape[-1] != 3 or len(self.modes) != len(self.poses)
+                or self.mirrored.shape != self.poses.shape[:2]):
+            raise ValueError(f"chaos cache: inconsistent shapes {self.poses.shape} / {self.modes.shape} / "
+                             f"{self.mirrored.shape}")
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -208,15 +231,16 @@ class ChaosCache:
     def build(cls, piece_set: PieceSet, n: int, seed: int, cfg: ChaosConfig = ChaosConfig(),
               view: View = View()) -> ChaosCache:
         """Generate ``n`` objects with a seeded generator."""
-        poses, modes = generate(piece_set, n, np.random.default_rng(seed), cfg, view)
-        return cls(poses, modes, piece_set.name)
+        poses, modes, mirrored = generate(piece_set, n, np.random.default_rng(seed), cfg, view)
+        return cls(poses, modes, piece_set.name, mirrored)
 
     def save(self, path: str | Path) -> None:
         """Write atomically."""
         from mrchaos.core.atomic import write_atomic
 
         buf = io.BytesIO()
-        np.savez_compressed(buf, poses=self.poses.astype(np.float32), modes=self.modes, piece_set=self.piece_set)
+        np.savez_compressed(buf, poses=self.poses.astype(np.float32), modes=self.modes, piece_set=self.piece_set,
+                            mirrored=self.mirrored)
         write_atomic(path, buf.getvalue())
 
     @classmethod
@@ -224,7 +248,7 @@ class ChaosCache:
         """Read a cache; a corrupt file or another piece set's cache raises ValueError naming the file."""
         try:
             with np.load(path, allow_pickle=False) as z:
-                cache = cls(z["poses"], z["modes"], str(z["piece_set"]))
+                cache = cls(z["poses"], z["modes"], str(z["piece_set"]), z["mirrored"] if "mirrored" in z else None)
         except FileNotFoundError:
             raise ValueError(f"{path}: no such chaos cache") from None
         except (OSError, KeyError, ValueError) as e:
@@ -233,6 +257,7 @@ class ChaosCache:
             raise ValueError(f"{path}: cache is for piece set {cache.piece_set!r}, not {piece_set.name!r}")
         return cache
 
-    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        """(n, P, 3) poses drawn uniformly with replacement."""
-        return self.poses[rng.integers(0, len(self), n)]
+    def sample(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """(n, P, 3) poses and (n, P) mirrored flags of objects drawn uniformly with replacement."""
+        i = rng.integers(0, len(self), n)
+        return self.poses[i], self.mirrored[i]

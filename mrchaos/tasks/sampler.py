@@ -76,11 +76,17 @@ class TaskConfig:
 
 @dataclass
 class TargetBatch:
-    """Targets for n worlds: poses (n, P, 3), source index (n,), and figure index (n,) or -1."""
+    """Targets for n worlds: poses (n, P, 3), source index (n,), figure index (n,) or -1, and
+    (n, P) bool mirrored, the pieces that lie turned over (default: none)."""
 
     poses: np.ndarray
     source: np.ndarray
     figure: np.ndarray
+    mirrored: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.mirrored is None:
+            self.mirrored = np.zeros(self.poses.shape[:2], dtype=bool)
 
 
 class TargetSampler:
@@ -91,10 +97,11 @@ class TargetSampler:
         cfg: the task: its mix and sources.
         figures: figures to use instead of loading ``cfg.figure_sets`` (optional).
         view: the camera view; chaos objects lie inside it.
+        flip: the env can turn pieces over, so figures that need a mirrored piece are used, not skipped.
     """
 
     def __init__(self, piece_set: PieceSet, cfg: TaskConfig = TaskConfig(), figures: list[Figure] | None = None,
-                 view: View = View()):
+                 view: View = View(), flip: bool = False):
         self.piece_set = piece_set
         self.cfg = cfg
         self.view = view
@@ -109,21 +116,29 @@ class TargetSampler:
         self.figures: list[Figure] = []
         if self.weights[2] > 0:
             self.figures = figures if figures is not None else self._load_figures()
-            self.figures = [f for f in self.figures if not f.has_mirrored]
+            if not flip:
+                self.figures = [f for f in self.figures if not f.has_mirrored]
             if not self.figures:
-                raise ValueError("task: figure weight > 0 but no usable figures (mirrored ones are skipped)")
+                raise ValueError("task: figure weight > 0 but no usable figures (mirrored ones are skipped "
+                                 "without env.grid.flip)")
         self._figure_poses = np.stack([f.poses for f in self.figures]) if self.figures else None
+        self._figure_mirrored = np.stack([f.mirrored for f in self.figures]) if self.figures else None
 
     def _load_or_build_cache(self) -> ChaosCache:
         path = self.cfg.cache.path
         if path and Path(path).exists():
             cache = ChaosCache.load(path, self.piece_set)
             # A cache built for a wider view would hand the policy pieces it cannot see.
-            reach = np.abs(self.piece_set.footprints(cache.poses)).max()
+            reach = np.abs(self.piece_set.footprints(cache.poses, cache.mirrored)).max()
             half = self.view.extent / 2
             if reach > half:
                 raise ValueError(f"{path}: chaos cache objects reach {reach:.3f} m from the centre, outside this "
                                  f"view's ±{half:.3f} m; delete it or set task.cache_path to rebuild")
+            # A cache drawn with another mirroring rule would train on the wrong faces.
+            if cache.mirrored.any() != (self.cfg.chaos.mirror_prob > 0):
+                had = "has" if cache.mirrored.any() else "has no"
+                raise ValueError(f"{path}: chaos cache {had} mirrored pieces but task.chaos.mirror_prob is "
+                                 f"{self.cfg.chaos.mirror_prob}; delete it or set task.cache.path to rebuild")
             return cache
         log.info("building a chaos cache of %d objects", self.cfg.cache.size)
         cache = ChaosCache.build(self.piece_set, self.cfg.cache.size, self.cfg.cache.seed, self.cfg.chaos, self.view)
@@ -147,15 +162,17 @@ class TargetSampler:
         """Targets for n worlds."""
         source = rng.choice(3, size=n, p=self.weights)
         poses = np.zeros((n, len(self.piece_set), 3))
+        mirrored = np.zeros((n, len(self.piece_set)), dtype=bool)
         figure = np.full(n, -1, dtype=np.int64)
         idx = np.flatnonzero(source == 0)
         if len(idx):
-            poses[idx] = generate(self.piece_set, len(idx), rng, self.cfg.chaos, self.view)[0]
+            poses[idx], _, mirrored[idx] = generate(self.piece_set, len(idx), rng, self.cfg.chaos, self.view)
         idx = np.flatnonzero(source == 1)
         if len(idx):
-            poses[idx] = self.cache.sample(len(idx), rng)
+            poses[idx], mirrored[idx] = self.cache.sample(len(idx), rng)
         idx = np.flatnonzero(source == 2)
         if len(idx):
             figure[idx] = rng.integers(0, len(self.figures), len(idx))
             poses[idx] = self._figure_poses[figure[idx]]
-        return TargetBatch(poses, source, figure)
+            mirrored[idx] = self._figure_mirrored[figure[idx]]
+        return TargetBatch(poses, source, figure, mirrored)
