@@ -99,8 +99,8 @@ def test_bad_actions_are_rejected():
         env.step(TensorDict(action=torch.tensor([[-1, 0, 0], [0, 0, 0]]), batch_size=[2]))
 
 
-def _oracle_episode(env, exact, targets):
-    env.reset_to(targets)
+def _oracle_episode(env, exact, targets, mirrored=None):
+    env.reset_to(targets, mirrored)
     step_cov = []
     for _ in range(env.num_pieces):
         if exact:
