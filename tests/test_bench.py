@@ -147,7 +147,7 @@ def test_bench_robot_placement_films_and_perturbs(tmp_path, capsys, rendering):
     res = json.loads((out / "results.json").read_text())
     assert res["placement"] == "robot"
     fam = res["policies"]["oracle"]["families"]["Random"]
-    assert set(fam["robot_failures"]) == {"unreachable", "missed", "dropped", "collision"}
+    assert set(fam["robot_failures"]) == {"unreachable", "missed", "dropped", "collision", "flip_failed"}
     assert fam["robot_failures"]["missed"] == 0.0 and fam["robot_failures"]["unreachable"] == 0.0
     # The oracle places by the solution; the push costs it a piece's worth at most.
     assert fam["final"]["mean"] > 0.7

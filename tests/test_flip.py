@@ -185,12 +185,10 @@ def test_policies_act_on_the_doubled_orientations():
         assert a[..., 2].max() >= 8 and a[..., 2].max() < 16
 
 
-def test_config_flip_spellings_and_robot_refusal():
+def test_config_flip_spellings():
     cfg = load_config(ROOT / "conf" / "flip.yaml")
     assert cfg.env.grid.flip and cfg.task.chaos.mirror_prob == 0.5
     assert load_config(ROOT / "conf" / "smoke.yaml", ["env.flip=true"]).env.grid.flip
-    with pytest.raises(ValueError, match="flip"):
-        EnvConfig(grid=FLIP, placement="robot")
     with pytest.raises(ValueError, match="mirror_prob"):
         ChaosConfig(mirror_prob=1.5)
 
@@ -214,3 +212,49 @@ def test_bench_flip_evaluates_mirrored_figures_and_counts_them(tmp_path):
     assert sum(res["needs_flip"].values()) == n
     finals = [res["policies"]["oracle"]["families"][f]["final"]["mean"] for f in res["counts"]]
     assert min(finals) > 0.9 and math.isfinite(sum(finals))
+
+
+def _random_flips(n: int, seed: int, flipper=None):
+    """n robot flips of the parallelogram to random poses on an empty table: the commanded poses,
+    the landing errors (m, rad) and the failure flags."""
+    from mrchaos.env.tangram import ROBOT_FAILURES
+
+    cfg = EnvConfig(num_worlds=n, grid=FLIP, placement="robot", task=CHAOS_ONLY)
+    env = TangramEnv(cfg if flipper is None else dataclasses.replace(cfg, flipper=flipper), seed=seed)
+    env.reset(TensorDict(preassembled=torch.full((n,), PARALLELOGRAM), horizon=torch.ones(n, dtype=torch.long),
+                         batch_size=[n]))
+    # The three pieces before it were pre-assembled at chaos targets; clear them off the table.
+    env.worlds.reset(np.arange(n))
+    rng = np.random.default_rng(seed)
+    pose = np.c_[rng.uniform(-0.07, 0.07, (n, 2)), rng.uniform(-math.pi, math.pi, n)]
+    out = env.place_poses(pose, np.ones(n, dtype=bool))
+    failed = np.zeros(n, dtype=bool)
+    for k in ROBOT_FAILURES:
+        failed |= out["info", k][:, 0].numpy()
+    from mrchaos.sim.flipper import landing_error
+
+    dist, angle = landing_error(env.piece_set.pieces[PARALLELOGRAM], env.worlds.footprint[:, PARALLELOGRAM], pose)
+    return dist, angle, failed
+
+
+def test_robot_flips_land_turned_over_within_2mm_and_2deg():
+    dist, angle, failed = [], [], []
+    for seed in (0, 1):
+        d, a, f = _random_flips(50, seed)
+        dist.append(d), angle.append(a), failed.append(f)
+    dist, angle, failed = map(np.concatenate, (dist, angle, failed))
+    good = ~failed & (dist < 0.002) & (angle < math.radians(2.0))
+    print(f"robot flips: {good.sum()} of 100 within 2 mm and 2 deg; median {1e3 * np.median(dist):.2f} mm, "
+          f"max {1e3 * dist[np.isfinite(dist)].max():.2f} mm, {np.degrees(angle[np.isfinite(angle)].max()):.2f} deg")
+    assert good.sum() >= 95
+    # A flag and a measurement that disagree would hide failures.
+    assert not (failed & np.isfinite(dist) & (dist < 0.002)).any()
+
+
+def test_a_flip_that_flings_the_piece_is_flagged():
+    from mrchaos.sim.flipper import FlipperConfig
+
+    # A half turn in 30 ms throws the piece off the plate's suction.
+    dist, _, failed = _random_flips(10, 0, FlipperConfig(swing=0.03))
+    assert failed.all()
+    assert (~np.isfinite(dist)).sum() >= 5

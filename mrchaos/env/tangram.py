@@ -50,6 +50,7 @@ from mrchaos.env.metrics import (
 from mrchaos.env.observation import ObservationConfig, silhouette_image, view_image
 from mrchaos.env.rewards import REWARD_TERMS, RewardConfig, reward_terms
 from mrchaos.figures.pieces import get_piece_set
+from mrchaos.sim.flipper import FlipperConfig
 from mrchaos.sim.robot import RobotConfig
 from mrchaos.sim.scene import SceneConfig
 from mrchaos.sim.worlds import PhysicsConfig, Worlds
@@ -58,7 +59,7 @@ from mrchaos.tasks.sampler import TargetBatch, TargetSampler, TaskConfig
 __all__ = ["EnvConfig", "NoiseConfig", "TangramEnv", "OracleTargets", "ROBOT_FAILURES"]
 
 #: Failure flags of robot placement in the step info (always False with teleport placement).
-ROBOT_FAILURES = ("unreachable", "missed", "dropped", "collision")
+ROBOT_FAILURES = ("unreachable", "missed", "dropped", "collision", "flip_failed")
 #: Where the env's wall-clock time goes (seconds, see :meth:`TangramEnv.timings`).
 TIMERS = ("physics", "images", "reward")
 
@@ -89,6 +90,8 @@ class EnvConfig:
         physics: placement physics (see :class:`mrchaos.sim.worlds.PhysicsConfig`).
         robot: the UR5e, used with ``placement: robot``; ``robot.model`` empty for the
             package's own MJCF, or MuJoCo Menagerie's ``universal_robots_ur5e/ur5e.xml``.
+        flipper: the flip fixture the robot turns pieces over on, in the scene with
+            ``placement: robot`` and ``grid.flip``.
         reward: the training reward's switches (see :mod:`mrchaos.env.rewards`).
         noise: action noise and camera jitter.
         task: where targets come from (the config's top-level ``task`` group).
@@ -103,6 +106,7 @@ class EnvConfig:
     placement: str = "teleport"
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
     robot: RobotConfig = field(default_factory=RobotConfig)
+    flipper: FlipperConfig = field(default_factory=FlipperConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
@@ -114,8 +118,6 @@ class EnvConfig:
             raise ValueError(f"env.placement must be 'teleport' or 'robot', got {self.placement!r}")
         if self.num_worlds < 1:
             raise ValueError(f"env.num_worlds must be >= 1, got {self.num_worlds}")
-        if self.grid.flip and self.placement == "robot":
-            raise ValueError("env.grid.flip needs env.placement: teleport; the robot scene has no flip fixture yet")
 
 
 @dataclass
@@ -156,7 +158,9 @@ class TangramEnv(EnvBase):
         # One height level of the view per piece thickness (the thinnest piece's).
         self._thickness = min(p.thickness for p in self.piece_set.pieces)
         robot = cfg.robot if cfg.placement == "robot" else None
-        self._worlds = Worlds(self.piece_set, cfg.num_worlds, cfg.physics, SceneConfig(), self.view, robot)
+        flipper = cfg.flipper if cfg.grid.flip else None
+        self._worlds = Worlds(self.piece_set, cfg.num_worlds, cfg.physics, SceneConfig(), self.view, robot,
+                              flipper=flipper)
         self._sampler = TargetSampler(self.piece_set, cfg.task, figures, self.view, flip=cfg.grid.flip)
         self._camera = None
         if cfg.camera == "mujoco":

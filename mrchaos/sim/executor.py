@@ -21,7 +21,7 @@ import numpy as np
 
 from mrchaos.sim.robot import Robot
 
-__all__ = ["ExecutorConfig", "Executor", "ExecutionResult"]
+__all__ = ["ExecutorConfig", "Executor", "ExecutionResult", "min_jerk", "weld_here"]
 
 
 @dataclass(frozen=True)
@@ -65,15 +65,23 @@ class ExecutionResult:
         missed: the lip never touched the piece, so suction did not attach.
         dropped: the piece was not on the cup when it reached the target.
         collision: the arm or cup touched a piece other than the one it carried.
+        flip_failed: a piece to be turned over did not lie flat and upside down where the flip
+            fixture's half turn puts it (see :mod:`mrchaos.sim.flipper`); all False otherwise.
     """
 
     unreachable: np.ndarray
     missed: np.ndarray
     dropped: np.ndarray
     collision: np.ndarray
+    flip_failed: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.flip_failed is None:
+            self.flip_failed = np.zeros_like(self.unreachable)
 
 
-def _min_jerk(n: int) -> np.ndarray:
+def min_jerk(n: int) -> np.ndarray:
+    """(n,) progress in (0, 1] of a minimum-jerk motion sampled at n equal steps."""
     t = (np.arange(1, n + 1)) / n
     return 10 * t**3 - 15 * t**4 + 6 * t**5
 
@@ -92,6 +100,23 @@ def _quat_conj(q: np.ndarray) -> np.ndarray:
 def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     qv = np.concatenate([np.zeros(v.shape[:-1] + (1,)), v], -1)
     return _quat_mul(_quat_mul(q, qv), _quat_conj(q))[..., 1:]
+
+
+def weld_here(batch: mujoco.batch.Batch, rows: np.ndarray, eq: np.ndarray, holder: int, body: np.ndarray) -> None:
+    """Switch on weld equality ``eq[i]`` of world ``rows[i]``, holding ``body[i]`` to ``holder`` at the
+    relative pose they have now (a suction that takes hold)."""
+    xpos, xquat = batch.bind("xpos"), batch.bind("xquat")
+    p1, q1 = xpos[rows, holder], xquat[rows, holder]
+    p2, q2 = xpos[rows, body], xquat[rows, body]
+    inv = _quat_conj(q1)
+    eq_data = batch.expand("eq_data")
+    data = eq_data[rows, eq]
+    data[:, 0:3] = 0.0  # anchor at the piece's origin
+    data[:, 3:6] = _rotate(inv, p2 - p1)
+    data[:, 6:10] = _quat_mul(inv, q2)
+    data[:, 10] = 1.0
+    eq_data[rows, eq] = data
+    batch.bind("eq_active")[rows, eq] = 1.0
 
 
 class Executor:
@@ -160,7 +185,7 @@ class Executor:
         travel = np.abs(np.diff(way, axis=1)).sum(1).max() if len(way) else 0.0
         seconds = max(seconds, 1.875 * travel / self.cfg.max_joint_speed)
         n = max(1, round(seconds / self.dt))
-        u = _min_jerk(n) * (way.shape[1] - 1)
+        u = min_jerk(n) * (way.shape[1] - 1)
         i = np.minimum(u.astype(int), way.shape[1] - 2)
         f = (u - i)[None, :, None]
         return way[:, i] * (1 - f) + way[:, i + 1] * f
@@ -195,21 +220,7 @@ class Executor:
     # ------------------------------------------------------------- suction
     def _suction_on(self, rows: np.ndarray, piece: np.ndarray) -> None:
         """Weld each piece to the cup at the relative pose they have now."""
-        cup = self.robot.cup_body
-        body = self.piece_bodies[piece]
-        p1, q1 = self.xpos[rows, cup], self.xquat[rows, cup]
-        p2, q2 = self.xpos[rows, body], self.xquat[rows, body]
-        inv = _quat_conj(q1)
-        rel_pos = _rotate(inv, p2 - p1)
-        rel_quat = _quat_mul(inv, q2)
-        eq = self.welds[piece]
-        data = self.eq_data[rows, eq]
-        data[:, 0:3] = 0.0  # anchor at the piece's origin
-        data[:, 3:6] = rel_pos
-        data[:, 6:10] = rel_quat
-        data[:, 10] = 1.0
-        self.eq_data[rows, eq] = data
-        self.eq_active[rows, eq] = 1.0
+        weld_here(self.batch, rows, self.welds[piece], self.robot.cup_body, self.piece_bodies[piece])
 
     def _suction_off(self, rows: np.ndarray, piece: np.ndarray) -> None:
         self.eq_active[rows, self.welds[piece]] = 0.0
@@ -230,6 +241,9 @@ class Executor:
         src = self.xpos[rows, body]
         qw = self.xquat[rows, body]
         src_yaw = np.arctan2(2 * (qw[:, 0] * qw[:, 3] + qw[:, 1] * qw[:, 2]), 1 - 2 * (qw[:, 2] ** 2 + qw[:, 3] ** 2))
+        over = 1 - 2 * (qw[:, 1] ** 2 + qw[:, 2] ** 2) < 0
+        if over.any():  # lying turned over (Rz(yaw) Ry(pi)): its x axis points back along -yaw
+            src_yaw = np.where(over, src_yaw - math.pi, src_yaw)
         period = self.period[piece]
         dst_yaw = pose[:, 2] + period * np.round((src_yaw - pose[:, 2]) / period)
         top = src[:, 2] + thick / 2

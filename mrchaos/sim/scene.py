@@ -20,6 +20,7 @@ import numpy as np
 from mrchaos.core.geometry import polygon_area
 from mrchaos.core.raster import View
 from mrchaos.figures.pieces import PieceSet
+from mrchaos.sim.flipper import FlipperConfig, attach_flipper, flipper_geometry
 from mrchaos.sim.robot import Robot, RobotConfig, attach_robot
 
 __all__ = ["SceneConfig", "build_scene_xml", "build_model", "staging_poses", "CAMERA_HEIGHT"]
@@ -158,9 +159,11 @@ def build_scene_xml(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view:
 
 
 def build_model(
-    piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view: View = View(), robot: RobotConfig | None = None
+    piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view: View = View(), robot: RobotConfig | None = None,
+    flipper: FlipperConfig | None = None,
 ) -> mujoco.MjModel:
-    """Compile the scene of a piece set, with the UR5e and its suction cup when ``robot`` is given.
+    """Compile the scene of a piece set, with the UR5e and its suction cup when ``robot`` is given,
+    and the flip fixture (:mod:`mrchaos.sim.flipper`) when ``flipper`` is given too.
 
     With a robot, the ``home`` keyframe holds the arm at its ready pose (TCP at
     ``robot.ready``, pointing down), with the actuators commanding that pose.
@@ -169,6 +172,9 @@ def build_model(
         return mujoco.MjModel.from_xml_string(build_scene_xml(piece_set, cfg, view))
     spec = mujoco.MjSpec.from_string(build_scene_xml(piece_set, cfg, view))
     attach_robot(spec, list(piece_set.names), robot)
+    if flipper is not None:
+        attach_flipper(spec, list(piece_set.names), flipper_geometry(piece_set, view, flipper), flipper,
+                       robot.weld_solref)
     model = spec.compile()
     arm = Robot(model, robot)
     # Elbow up, wrist down: the branch of the UR's usual home posture.

@@ -29,6 +29,7 @@ from mrchaos.core.geometry import convex_penetration, rigid_transform
 from mrchaos.core.raster import Raster, View, rasterize
 from mrchaos.figures.pieces import PieceSet
 from mrchaos.sim.executor import ExecutionResult, Executor, ExecutorConfig
+from mrchaos.sim.flipper import Flipper, FlipperConfig, flipper_geometry
 from mrchaos.sim.robot import Robot, RobotConfig
 from mrchaos.sim.scene import SceneConfig, build_model, staging_poses
 
@@ -107,6 +108,8 @@ class Worlds:
 
     With ``robot`` given, the scene holds the UR5e and :meth:`place` has it pick and
     place every piece (:class:`mrchaos.sim.executor.Executor`); otherwise pieces teleport.
+    With ``flipper`` given too, the scene holds the flip fixture and the robot turns pieces
+    over on it (:class:`mrchaos.sim.flipper.Flipper`) when a placement asks for a mirrored one.
 
     Attributes kept per world (numpy, updated by :meth:`reset` and :meth:`place`):
         placed: (N, P) bool, pieces on the table (not in the staging area).
@@ -123,11 +126,12 @@ class Worlds:
         view: View = View(),
         robot: RobotConfig | None = None,
         executor: ExecutorConfig = ExecutorConfig(),
+        flipper: FlipperConfig | None = None,
     ) -> None:
         self.piece_set = piece_set
         self.n = n
         self.cfg = physics
-        self.model = build_model(piece_set, scene, view, robot)
+        self.model = build_model(piece_set, scene, view, robot, flipper if robot is not None else None)
         # Sleeping islands need one MjData per world (persistent).
         self.batch = mujoco.batch.Batch(self.model, nsim=n, nthread=physics.nthread, persistent=True)
         self.qpos = self.batch.bind("qpos")
@@ -156,9 +160,13 @@ class Worlds:
         self.count_fast = 0
         self.count_physics = 0
         self.executor = None
+        self.flipper = None
         if robot is not None:
             period = np.array([pc.symmetry_period for pc in piece_set.pieces])
             self.executor = Executor(self.batch, Robot(self.model, robot), bodies, self._thick, period, executor)
+            if flipper is not None:
+                self.flipper = Flipper(self.batch, self.model, bodies, flipper_geometry(piece_set, view, flipper),
+                                       flipper)
         self.batch.reset(keyframe=0)
         self._refresh(np.arange(n))
 
@@ -243,10 +251,7 @@ class Worlds:
         depth = self._piece_depth(foot, rows)  # (m, P)
         under = others & (depth > self.cfg.free_tolerance)
         if self.executor is not None:
-            if mirrored is not None and mirrored.any():
-                raise ValueError("robot placement cannot turn a piece over yet (no flip fixture in the scene); "
-                                 "use env.placement: teleport with env.grid.flip")
-            return self._place_robot(rows, piece, pose, under, depth)
+            return self._place_robot(rows, piece, pose, under, depth, mirrored)
         free = ~under.any(1)
         half = self._thick[piece] / 2
         # Fast path: the piece lands flat on the table, exactly where a settle would put it.
@@ -304,12 +309,29 @@ class Worlds:
         self._refresh(rows)
 
     def _place_robot(self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, under: np.ndarray,
-                     depth: np.ndarray) -> PlacementResult:
-        """The robot places the pieces; the release height clears what lies under the target."""
+                     depth: np.ndarray, mirrored: np.ndarray | None) -> PlacementResult:
+        """The robot places the pieces; the release height clears what lies under the target. A piece
+        to go down mirrored is first set on the flip fixture, turned over, and picked up again."""
         deep = under & (depth > self.cfg.push_depth)
         floor = np.where(deep, self.top[rows], 0.0).max(1)
         travel = np.where(self.placed[rows], self.top[rows], 0.0).max(1)
+        flip = None
+        f = np.flatnonzero(mirrored) if mirrored is not None else np.zeros(0, dtype=np.int64)
+        if len(f):
+            if self.flipper is None:
+                raise ValueError("turning a piece over with the robot needs the flip fixture in the scene "
+                                 "(env.grid.flip with env.placement: robot)")
+            g = self.flipper.geometry
+            # Set down at the yaw that the half turn maps onto the target's.
+            on_plate = np.c_[np.tile(g.plate_centre, (len(f), 1)), -pose[f, 2]]
+            flip = self.executor.execute(rows[f], piece[f], on_plate, np.full(len(f), g.top), travel[f])
+            _, turned = self.flipper.flip(rows[f], piece[f], on_plate)
+            flip.flip_failed = ~turned
         res = self.executor.execute(rows, piece, pose, floor, travel)
+        if flip is not None:
+            for k in ("unreachable", "missed", "dropped", "collision"):
+                getattr(res, k)[f] |= getattr(flip, k)
+            res.flip_failed[f] = flip.flip_failed
         self.placed[rows, piece] = True
         self._refresh(rows)
         self.count_physics += len(rows)
