@@ -10,8 +10,10 @@ Then, for the default (spatial) policy, collection alone through each collector 
 (worker processes) and ``ray`` (Ray actors on a local cluster), each with ``--workers``
 workers of 256 worlds on one thread. Training on the GPU: add ``device=cuda``.
 
-    python benchmarks/train_throughput.py [--iterations 4] [--threads 2] [--workers 2]
-        [--collectors sync multisync ray] [key=value ...]
+    python benchmarks/train_throughput.py [key=value ...] [--iterations 4] [--threads 2] [--workers 2]
+        [--variants paper paper-fullres spatial] [--collectors sync multisync ray]
+
+(Config overrides come first: after ``--variants`` or ``--collectors`` they would be read as names.)
 """
 
 from __future__ import annotations
@@ -69,8 +71,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--iterations", type=int, default=4, help="measured iterations (after one warm-up)")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--variants", nargs="+", default=list(VARIANTS))
-    ap.add_argument("--collectors", nargs="*", default=["sync", "multisync", "ray"],
+    # choices: a key=value written after --variants or --collectors is refused at once, not
+    # taken for a name and found wrong minutes later.
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--collectors", nargs="*", default=["sync", "multisync", "ray"], choices=["sync", "multisync", "ray"],
                     help="collector kinds to time collection alone with (none: skip)")
     ap.add_argument("--workers", type=int, default=2, help="workers of multisync and ray")
     ap.add_argument("overrides", nargs="*")
