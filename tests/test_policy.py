@@ -44,7 +44,7 @@ def test_factorised_categorical():
 def test_spatial_head_reads_the_grid_positions():
     """A logit peak at a point of the image selects the grid action at that point."""
     grid, view = ActionGrid(), View()
-    head = SpatialHead(1, grid, view)
+    head = SpatialHead(1, 30, grid, view)
     with torch.no_grad():
         head.conv.weight.zero_()
         head.conv.bias.zero_()
@@ -81,3 +81,39 @@ def test_policy_config_errors():
         PolicyConfig(name="transformer")
     with pytest.raises(ValueError, match="channels"):
         PolicyConfig(channels=[8, 8])
+
+
+@pytest.mark.parametrize("upsample", [1, 2])
+def test_spatial_head_sampling_equals_grid_sample(upsample):
+    """The separable bilinear sampling is grid_sample at the grid's image positions."""
+    grid, view = ActionGrid(), View()
+    head = SpatialHead(4, 30, grid, view, upsample)
+    f = torch.randn(3, 4, 30, 30)
+    with torch.no_grad():
+        logits = head.shuffle(head.conv(f))
+        gx = torch.as_tensor(grid.xs, dtype=torch.float32) / (view.extent / 2)
+        gy = -torch.as_tensor(grid.ys, dtype=torch.float32) / (view.extent / 2)
+        yy, xx = torch.meshgrid(gy, gx, indexing="ij")
+        where = torch.stack([xx, yy], -1)[None].expand(3, -1, -1, -1)
+        expect = torch.nn.functional.grid_sample(logits, where, mode="bilinear", align_corners=False)
+        assert torch.allclose(head(f), expect, atol=1e-4)
+
+
+def test_grid_categorical_fused_log_prob_and_entropy_gradients():
+    """log_prob with gradients also gives the entropy; both, and their gradients, are the plain ones."""
+    torch.manual_seed(1)
+    z = torch.randn(5, 8, 7, 6, requires_grad=True)
+    a = torch.stack([torch.randint(0, 6, (5,)), torch.randint(0, 7, (5,)), torch.randint(0, 8, (5,))], -1)
+    d = GridCategorical(z)
+    lp, h = d.log_prob(a), d.entropy()
+    (lp.sum() + 0.3 * h.sum()).backward()
+    g = z.grad.clone()
+    z.grad = None
+    ref = torch.log_softmax(z.flatten(-3), -1)
+    flat = a[:, 2] * 42 + a[:, 1] * 6 + a[:, 0]
+    lp_ref, h_ref = ref.gather(-1, flat[:, None])[:, 0], -(ref.exp() * ref).sum(-1)
+    (lp_ref.sum() + 0.3 * h_ref.sum()).backward()
+    assert torch.allclose(lp, lp_ref, atol=1e-6) and torch.allclose(h, h_ref, atol=1e-6)
+    assert torch.allclose(g, z.grad, atol=1e-6)
+    with torch.no_grad():
+        assert torch.allclose(d.log_prob(a), lp_ref, atol=1e-6)
