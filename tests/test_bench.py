@@ -188,5 +188,5 @@ def test_supervised_chaos_policies_beat_the_ppo_policy_on_random(tmp_path):
                        "--out", str(out), "--worlds", "32"]) == 0
     res = json.loads((out / "results.json").read_text())["policies"]
     final = {k: v["families"]["Random"]["final"]["mean"] for k, v in res.items()}
-    assert min(final["mrchaos-dense"], final["mrchaos-bc-chaos"], final["mrchaos-dense-ppo"]) > 0.85, final
-    assert final["mrchaos"] < 0.85, final
+    supervised = min(final["mrchaos-dense"], final["mrchaos-bc-chaos"], final["mrchaos-dense-ppo"])
+    assert supervised > 0.85 and supervised > final["mrchaos"] + 0.02, final
