@@ -25,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from mrchaos.learn.config import load_config
+from mrchaos.learn.config import COLLECTOR_KINDS, load_config
 from mrchaos.learn.policy import count_parameters
 from mrchaos.learn.ppo import Trainer
 
@@ -74,7 +74,7 @@ def main() -> None:
     # choices: a key=value written after --variants or --collectors is refused at once, not
     # taken for a name and found wrong minutes later.
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
-    ap.add_argument("--collectors", nargs="*", default=["sync", "multisync", "ray"], choices=["sync", "multisync", "ray"],
+    ap.add_argument("--collectors", nargs="*", default=list(COLLECTOR_KINDS), choices=COLLECTOR_KINDS,
                     help="collector kinds to time collection alone with (none: skip)")
     ap.add_argument("--workers", type=int, default=2, help="workers of multisync and ray")
     ap.add_argument("overrides", nargs="*")

@@ -95,10 +95,15 @@ class FactorisedCategorical(Distribution):
         return self.mode
 
 
+def _entropy(lp: torch.Tensor) -> torch.Tensor:
+    """Entropy of categoricals given by normalised log-probabilities ``lp`` (..., N)."""
+    return -(lp.exp() * lp).sum(-1)
+
+
 def _log_prob_entropy(scores: torch.Tensor, flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Log-probability of ``flat`` and entropy of the categorical with unnormalised ``scores`` (..., N)."""
     lp = scores - torch.logsumexp(scores, -1, keepdim=True)
-    return lp.gather(-1, flat.unsqueeze(-1)).squeeze(-1), -(lp.exp() * lp).sum(-1)
+    return lp.gather(-1, flat.unsqueeze(-1)).squeeze(-1), _entropy(lp)
 
 
 # The PPO loss's log-probability and entropy over 20,808 actions, their elementwise passes fused
@@ -164,8 +169,7 @@ class GridCategorical(Distribution):
     def entropy(self) -> torch.Tensor:
         if self._entropy is not None and torch.is_grad_enabled():
             return self._entropy
-        lp = self.logits
-        return -(lp.exp() * lp).sum(-1)
+        return _entropy(self.logits)
 
     @property
     def mode(self) -> torch.Tensor:
