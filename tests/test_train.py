@@ -127,6 +127,18 @@ def test_smoke_run_and_resume_after_kill(tmp_path):
     assert after["optim"]["state"]
 
 
+def test_lr_anneals_linearly_over_the_frame_budget(tmp_path):
+    with pytest.raises(ConfigError, match="optim.lr_final anneals over the run's budget"):
+        load_config(SMOKE, ["optim.lr_final=0", "collector.total_frames=-1"])
+    assert train_main([str(SMOKE), f"runs_dir={tmp_path}", "collector.total_frames=512", "optim.lr=1e-3",
+                       "optim.lr_final=2e-4", "--eval", "0"]) == 0
+    # Each 128-frame iteration sets the rate for its update from the frames seen so far.
+    lrs = [float(r["lr"]) for r in _rows(tmp_path / "smoke")]
+    assert lrs == pytest.approx([1e-3 - 8e-4 * i / 4 for i in (1, 2, 3, 4)])
+    saved = load_checkpoint(tmp_path / "smoke" / "checkpoints" / "last.pt")
+    assert saved["optim"]["param_groups"][0]["lr"] == pytest.approx(2e-4)
+
+
 def test_sigterm_saves_and_exits_cleanly(tmp_path):
     cmd = [sys.executable, "-m", "mrchaos.cli.train", str(SMOKE), f"runs_dir={tmp_path}",
            "collector.total_frames=100000", "checkpoint.every=1000", "--eval", "0"]

@@ -126,11 +126,23 @@ class LossConfig:
 
 @dataclass
 class OptimConfig:
-    """Adam (the paper's learning rate) and gradient clipping."""
+    """Adam (the paper's learning rate), an optional linear anneal, and gradient clipping.
+
+    ``lr_final`` anneals the learning rate linearly from ``lr`` to it as the run spends its
+    budget: the larger of frames / ``collector.total_frames`` and minutes /
+    ``collector.max_minutes``. None keeps ``lr`` constant (the paper's setting).
+    """
 
     lr: float = 2e-4
+    lr_final: float | None = None
     max_grad_norm: float = 0.5
     weight_decay: float = 0.0
+
+    def learning_rate(self, progress: float) -> float:
+        """The learning rate at ``progress`` (the budget's used fraction, clipped to [0, 1])."""
+        if self.lr_final is None:
+            return self.lr
+        return self.lr + (self.lr_final - self.lr) * min(max(progress, 0.0), 1.0)
 
 
 @dataclass
@@ -248,6 +260,9 @@ class TrainConfig:
             raise ValueError(f"algo must be 'ppo' or 'bc', got {self.algo!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
+        if self.optim.lr_final is not None and self.collector.total_frames <= 0 and self.collector.max_minutes <= 0:
+            raise ValueError("optim.lr_final anneals over the run's budget: set collector.total_frames or "
+                             "collector.max_minutes")
 
     def env_config(self) -> EnvConfig:
         """The env config with the task group folded in."""

@@ -52,7 +52,7 @@ TRAIN_KEYS = ("observation", "action", "action_log_prob", "advantage", "value_ta
 LOSS_KEYS = ("loss_objective", "loss_critic", "loss_entropy", "entropy")
 CSV_FIELDS = [
     "iteration", "frames", "episodes", "minutes", "sps", "stage", "reward", "rela", "final",
-    *LOSS_KEYS, "collect_s", "update_s", *(f"term_{k}" for k in REWARD_TERMS),
+    *LOSS_KEYS, "collect_s", "update_s", *(f"term_{k}" for k in REWARD_TERMS), "lr",
 ]
 
 
@@ -230,7 +230,7 @@ class Trainer:
             if new:
                 w.writeheader()
             w.writerow({k: row.get(k, "") for k in CSV_FIELDS})
-        for k in ("reward", "rela", "final", *LOSS_KEYS, "stage", "sps", *(f"term_{t}" for t in REWARD_TERMS)):
+        for k in ("reward", "rela", "final", *LOSS_KEYS, "stage", "sps", "lr", *(f"term_{t}" for t in REWARD_TERMS)):
             self.loggers.log_scalar(k, row.get(k), step=self.iteration)
         rerun = self.loggers.get("rerun")
         every = max(1, self.cfg.logger.image_every)
@@ -340,6 +340,9 @@ class Trainer:
                 self.episodes += seen["ended"]
                 stage = int(self.curriculum.stage)
 
+                lr = cfg.optim.learning_rate(self.progress)
+                for group in self.optim.param_groups:
+                    group["lr"] = lr
                 losses = self.update(data)
 
                 self.minutes = (time.perf_counter() - started) / 60
@@ -353,7 +356,7 @@ class Trainer:
                 row = {
                     "iteration": self.iteration, "frames": self.frames, "episodes": self.episodes,
                     "minutes": round(self.minutes, 3), "sps": data.numel() / (collect_s + update_s), "stage": stage,
-                    "collect_s": round(collect_s, 3), "update_s": round(update_s, 3), **seen, **losses,
+                    "collect_s": round(collect_s, 3), "update_s": round(update_s, 3), **seen, **losses, "lr": lr,
                 }
                 self._log(row, data)
                 if bar is not None:
@@ -374,6 +377,13 @@ class Trainer:
             self.save()
             self.loggers.close()
         return {"iteration": self.iteration, "frames": self.frames, "stopped": self.stop_requested}
+
+    @property
+    def progress(self) -> float:
+        """The used fraction of the run's budget: the larger of its frames' and its minutes' (0 without one)."""
+        c = self.cfg.collector
+        return max(self.frames / c.total_frames if c.total_frames > 0 else 0.0,
+                   self.minutes / c.max_minutes if c.max_minutes > 0 else 0.0)
 
     def _should_stop(self) -> bool:
         over_frames = 0 < self.cfg.collector.total_frames <= self.frames
