@@ -62,6 +62,12 @@ class PolicySpec:
     path: str | None = None
     state: dict | None = field(default=None, repr=False)
 
+    @property
+    def flips(self) -> bool:
+        """Whether the policy was trained to choose the face of chiral pieces (a checkpoint whose
+        action grid has the flip); the baselines get the flip only from the bench's own switch."""
+        return self.state is not None and bool(policy_env(self.state).get("grid", {}).get("flip", False))
+
 
 def resolve_policy(spec: str) -> PolicySpec:
     """A baseline (random, oracle), a shipped policy's name (:data:`mrchaos.learn.checkpoint.SHIPPED`),

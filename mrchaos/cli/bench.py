@@ -34,7 +34,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", type=int, default=1, help="with --placement robot and --record or --video: episodes "
                     "per policy and family whose scene is rendered (a few frames per placement)")
     ap.add_argument("--flip", action="store_true", help="evaluate figures that need a chiral piece turned over "
-                    "(skipped otherwise); random and oracle get the action grid's flip, a checkpoint keeps its own grid")
+                    "(skipped otherwise); random and oracle get the action grid's flip, a checkpoint keeps its own grid. "
+                    "Implied when a policy was trained with the flip")
     ap.add_argument("--out", type=Path, default=Path("runs/bench"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--worlds", type=int, default=64, help="worlds evaluated at once")
@@ -56,6 +57,12 @@ def _bench(args: argparse.Namespace) -> int:
     families = parse_families(args.families, args.task)
     default = "mrchaos" if args.task == "tangram" else f"mrchaos-{args.task}"
     specs = [resolve_policy(p) for p in (args.policy or [default])]
+    flip = args.flip or any(s.flips for s in specs)
+    if flip and not args.flip:
+        # A policy that can turn pieces over is asked to: skipping the figures it was trained
+        # for would hide the result its checkpoint exists for.
+        print("--flip implied by " + ", ".join(s.name for s in specs if s.flips)
+              + ": figures that need a piece turned over are evaluated", file=sys.stderr)
     sets = [load_figures(p) for p in args.figures] if args.figures else None  # None: the task's own goals
     if args.video and args.video.suffix.lower() not in (".gif", ".mp4"):
         raise ValueError(f"{args.video}: --video must end in .gif or .mp4")
@@ -69,7 +76,7 @@ def _bench(args: argparse.Namespace) -> int:
     bench = Bench(sets, families, args.random_objects, args.seed, args.placement, args.worlds,
                   robot_model=args.robot_model, perturb_after=args.perturb,
                   perturb_distance=args.perturb_distance, scenes=max(args.scenes, 1 if args.video else 0) if film else 0,
-                  task=args.task, flip=args.flip)
+                  task=args.task, flip=flip)
     for fid, why in bench.skipped:
         print(f"skipped {fid}: {why}", file=sys.stderr)
     recorder = None
