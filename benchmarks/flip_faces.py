@@ -2,7 +2,7 @@
 
 Final and Rela barely see a wrongly faced parallelogram (most of its slot is covered either way), so
 this counts the choice itself: greedy episodes on a figure set, and for every placement of a chiral
-piece whether the action's face (index >= ntheta: turned over) matches the target's.
+piece whether the action's face (`ActionGrid.mirrored`) matches the target's.
 
     python benchmarks/flip_faces.py runs/mrchaos104_mirrored.json ../shared/figures/mrchaos104.json
 """
@@ -25,7 +25,7 @@ def face_counts(figures: str, policy: str) -> tuple[int, int, int, int]:
     env = bench.make_env(spec)
     actor = bench.actor(spec, env)
     chiral = env.piece_set.chiral
-    nw, ntheta = env.batch_size[0], env.grid.ntheta
+    nw = env.batch_size[0]
     placed: dict[tuple[int, int], np.ndarray] = {}
 
     def on_step(start: int, t: int, nxt) -> None:
@@ -41,7 +41,7 @@ def face_counts(figures: str, policy: str) -> tuple[int, int, int, int]:
                 piece = placed[(ep[0] // nw * nw, s["t"])][: len(ep)]
                 sel = (piece >= 0) & chiral[np.maximum(piece, 0)]
                 want = mirrored[ep[sel], piece[sel]]
-                got = s["action"][sel, 2] >= ntheta
+                got = env.grid.mirrored(s["action"][sel])
                 counts += [(got & want).sum(), want.sum(), (~got & ~want).sum(), (~want).sum()]
     env.close()
     return tuple(int(c) for c in counts)
