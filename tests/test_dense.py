@@ -9,7 +9,9 @@ from tensordict import TensorDict
 
 from mrchaos.core.geometry import rigid_transform
 from mrchaos.env import EnvConfig, TangramEnv
+from mrchaos.env.actions import ActionGrid
 from mrchaos.env.oracle import oracle_actions
+from mrchaos.tasks.chaos import ChaosConfig
 from mrchaos.tasks.sampler import MixConfig, TaskConfig
 
 
@@ -63,3 +65,44 @@ def test_footprints_on_placed_pieces_are_reported_as_overlap():
     assert (overlap[ar, a[:, 2], a[:, 1], a[:, 0]] > 0.3).all()
     assert (cov.flatten(1).max(1).values > 0.8).all()  # its own slot is still there to cover
     assert (overlap >= 0).all() and (overlap <= 1).all() and (cov >= 0).all() and (cov <= 1).all()
+
+
+def test_dense_targets_with_the_flip_grade_both_faces_like_the_env_reward():
+    """With the flip, the turned-over orientations follow the face-up ones and a turned-over
+    slot is covered by the turned-over actions; sampled free actions of either face agree with
+    the env's own reward."""
+    n = 32
+    task = TaskConfig(mix=MixConfig(chaos=1.0, cache=0.0), chaos=ChaosConfig(mirror_prob=1.0))
+    env = TangramEnv(EnvConfig(num_worlds=n, grid=ActionGrid(flip=True), task=task), seed=5)
+    ntheta = env.grid.ntheta
+    g = torch.Generator().manual_seed(1)
+    dense, real, chiral_gap = [], [], []
+    env.reset()
+    for _ in range(env.num_pieces):
+        cov, overlap = env.counterfactual()
+        assert cov.shape == overlap.shape == (n, 2 * ntheta, 51, 51)
+        answer = env.oracle_targets()
+        a = oracle_actions(env)
+        ar = torch.arange(n)
+        chiral = env.piece_set.chiral[answer.piece]
+        assert (env.grid.mirrored(a.numpy()) == (answer.mirrored & chiral)).all()
+        if chiral.any():
+            other = a.clone()
+            other[:, 2] = (a[:, 2] + ntheta) % (2 * ntheta)  # the same place and angle, the other face
+            right, wrong = cov[ar, a[:, 2], a[:, 1], a[:, 0]], cov[ar, other[:, 2], other[:, 1], other[:, 0]]
+            chiral_gap += (right - wrong)[torch.as_tensor(chiral)].tolist()
+        else:  # a piece that is not chiral goes down as itself whichever face is asked for
+            assert torch.equal(cov[:, :ntheta], cov[:, ntheta:])
+        # Random faces and shifts around the slot, so that both faces and graded coverage are sampled.
+        a[:, :2] = (a[:, :2] + torch.randint(-2, 3, (n, 2), generator=g)).clamp(0, 50)
+        a[:, 2] = a[:, 2] % ntheta + ntheta * torch.randint(0, 2, (n,), generator=g)
+        pred, free = cov[ar, a[:, 2], a[:, 1], a[:, 0]], overlap[ar, a[:, 2], a[:, 1], a[:, 0]] == 0
+        out = env.step(TensorDict(action=a, batch_size=[n]))["next"]
+        ok = (free & ~out["info", "physics"][:, 0]).numpy()
+        dense += pred[ok].tolist()
+        real += out["info", "step_coverage"][:, 0][ok].tolist()
+    dense, real = np.array(dense), np.array(real)
+    assert len(dense) > 60 and (real > 0.5).sum() > 10 and (real < 0.5).sum() > 10
+    assert np.abs(dense - real).mean() < 0.05 and np.abs(dense - real).max() < 0.15
+    # On its own face the parallelogram covers its turned-over slot; on the other it misses a good part.
+    assert len(chiral_gap) == n and min(chiral_gap) > 0.1

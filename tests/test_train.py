@@ -202,6 +202,27 @@ def test_behaviour_cloning_smoke(tmp_path, capsys):
     assert resolve_policy(str(tmp_path / "bc")).kind == "checkpoint"
 
 
+def test_dense_supervision_with_the_flip_smoke(tmp_path, caplog):
+    """conf/dense.yaml with the flip and turned-over chaos pieces: both faces labelled, a DAgger
+    round on the policy's own assemblies, the loss falls, and the checkpoint's grid flips."""
+    import logging
+
+    caplog.set_level(logging.INFO, logger="mrchaos.learn.bc")
+    rc = train_main([str(ROOT / "conf" / "dense.yaml"), f"runs_dir={tmp_path}", "env.grid.flip=true",
+                     "task.chaos.mirror_prob=0.5", "bc.objects=48", "bc.epochs=3", "bc.dagger_rounds=1",
+                     "bc.dagger_objects=16", "bc.dagger_epochs=1", "env.num_worlds=16", "precision=fp32",
+                     "policy.channels=[8,16,16]", "policy.hidden=64"])
+    assert rc == 0
+    turned = [r.getMessage() for r in caplog.records if "with a piece turned over" in r.getMessage()]
+    assert turned and " 0 with a piece turned over" not in turned[0]
+    with open(tmp_path / "dense" / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["round"] for r in rows] == ["0", "0", "0", "1"] and float(rows[2]["loss"]) < float(rows[0]["loss"])
+    from mrchaos.bench.benchmark import resolve_policy
+
+    assert resolve_policy(str(tmp_path / "dense")).flips
+
+
 def test_multisync_collector_smoke(tmp_path):
     """collector.kind=multisync: two worker processes follow the curriculum switch."""
     rc = train_main([str(SMOKE), f"runs_dir={tmp_path}", "collector.kind=multisync", "collector.workers=2",

@@ -390,14 +390,12 @@ class TangramEnv(EnvBase):
     def counterfactual(self) -> tuple[torch.Tensor, torch.Tensor]:
         """What placing every world's next piece at each grid action would earn, if it touched
         nothing, and how much of that footprint would lie on placed pieces: (N, T, Y, X) coverage
-        and overlap in [0, 1] (see :mod:`mrchaos.env.dense`). Privileged, like :meth:`oracle_targets`."""
-        if self.grid.flip or self._mirrored.any():
-            raise ValueError("counterfactual (dense) targets do not cover turned-over pieces yet; "
-                             "use oracle targets with env.grid.flip")
+        and overlap in [0, 1], T = ``grid.norient`` (see :mod:`mrchaos.env.dense`; with the flip, the
+        turned-over orientations follow the face-up ones). Privileged, like :meth:`oracle_targets`."""
         if self._counterfactual is None:
             self._counterfactual = CounterfactualGrid(self.piece_set, self.grid)
         return self._counterfactual.coverage(self._upcoming(), self._target, self._worlds.footprint,
-                                             self._worlds.placed, self._twins)
+                                             self._worlds.placed, self._twins, self._mirrored)
 
     @property
     def worlds(self) -> Worlds:

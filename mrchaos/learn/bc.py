@@ -47,10 +47,10 @@ log = logging.getLogger("mrchaos.learn.bc")
 
 
 def augment(figures: list[Figure], rotations: int, shifts: int, max_shift: float, rng: np.random.Generator,
-            bound: float) -> np.ndarray:
-    """(M, P, 3) target poses: each figure rotated about its centre and shifted, every vertex kept
-    within ``bound`` metres of the centre (inside the view)."""
-    out = []
+            bound: float) -> tuple[np.ndarray, np.ndarray]:
+    """(M, P, 3) target poses and (M, P) bool faces (turned over): each figure rotated about its
+    centre and shifted, every vertex kept within ``bound`` metres of the centre (inside the view)."""
+    out, faces = [], []
     for f in figures:
         for k in range(rotations):
             a = 2 * math.pi * k / rotations
@@ -65,7 +65,8 @@ def augment(figures: list[Figure], rotations: int, shifts: int, max_shift: float
                 cand[:, :2] += d
                 if np.abs(rigid_transform(outline, cand)).max() <= bound:
                     out.append(cand)
-    return np.stack(out)
+                    faces.append(f.mirrored)
+    return np.stack(out), np.stack(faces)
 
 
 #: Dense labels are stored as uint8: coverage * 254, and 255 where physics decides (masked).
@@ -81,8 +82,10 @@ def _dense_label(env: TangramEnv, overlap_limit: float) -> torch.Tensor:
 
 
 def demonstrations(env: TangramEnv, targets: np.ndarray, actor=None, dense: bool = False,
-                   overlap_limit: float = 0.02) -> tuple[torch.Tensor, torch.Tensor]:
+                   overlap_limit: float = 0.02, mirrored: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Observations (M*P, 2, H, W) uint8 along each assembly and their labels.
+
+    ``mirrored`` (M, P) bool marks target pieces that lie turned over (the env needs the flip).
 
     The assemblies are the oracle's, or ``actor``'s (DAgger: the states a policy reaches);
     the labels are the oracle's grid actions (M*P, 3), or with ``dense`` the counterfactual
@@ -97,27 +100,31 @@ def demonstrations(env: TangramEnv, targets: np.ndarray, actor=None, dense: bool
         labels.append(_dense_label(e, overlap_limit) if dense else oracle_actions(e))
         return oracle_actions(e) if actor is None else actor(e, td)
 
-    evaluate(env, targets, act)
+    evaluate(env, targets, act, mirrored=mirrored)
     nw, n, p = env.batch_size[0], len(targets), env.num_pieces
     keep = [min(nw, n - start) for start in range(0, n, nw) for _ in range(p)]
     return (torch.cat([o[:k] for o, k in zip(obs, keep)]), torch.cat([lb[:k] for lb, k in zip(labels, keep)]))
 
 
-def _targets(cfg: TrainConfig, rng: np.random.Generator, n_chaos: int, seed: int) -> tuple[np.ndarray, str]:
-    """Target poses to demonstrate and a description: augmented figures, or chaos objects."""
+def _targets(cfg: TrainConfig, rng: np.random.Generator, n_chaos: int, seed: int) -> tuple[np.ndarray, np.ndarray, str]:
+    """Target poses to demonstrate, their faces (M, P) bool (turned over) and a description:
+    augmented figures, or chaos objects."""
+    flip = cfg.env.grid.flip
     if cfg.bc.source == "chaos":
-        if cfg.task.chaos.mirror_prob > 0:
-            raise ValueError("bc: demonstrations of chaos objects with turned-over pieces are not built yet; "
-                             "set task.chaos.mirror_prob=0 or train with PPO")
-        poses = generate(get_piece_set(cfg.env.piece_set), n_chaos, np.random.default_rng(seed), cfg.task.chaos,
-                         cfg.env.view)[0]
-        return poses, f"{n_chaos} chaos objects (seed {seed})"
+        if cfg.task.chaos.mirror_prob > 0 and not flip:
+            raise ValueError("bc: chaos objects with turned-over pieces (task.chaos.mirror_prob > 0) need "
+                             "env.grid.flip: true, or set task.chaos.mirror_prob=0")
+        poses, _, mirrored = generate(get_piece_set(cfg.env.piece_set), n_chaos, np.random.default_rng(seed),
+                                      cfg.task.chaos, cfg.env.view)
+        return poses, mirrored, f"{n_chaos} chaos objects (seed {seed}, {int(mirrored.any(1).sum())} with a piece turned over)"
     figs: list[Figure] = []
     for src in cfg.bc.figure_sets:
         figs += builtin_figures() if src == "builtin" else load_figures(src).figures
-    figs = [f for f in figs if not f.has_mirrored]
-    poses = augment(figs, cfg.bc.rotations, cfg.bc.shifts, cfg.bc.max_shift, rng, cfg.task.chaos.bound(cfg.env.view))
-    return poses, f"{len(figs)} figures ({len(poses)} augmented)"
+    if not flip:  # without the flip, a figure that needs a turned-over piece cannot be assembled
+        figs = [f for f in figs if not f.has_mirrored]
+    poses, mirrored = augment(figs, cfg.bc.rotations, cfg.bc.shifts, cfg.bc.max_shift, rng,
+                              cfg.task.chaos.bound(cfg.env.view))
+    return poses, mirrored, f"{len(figs)} figures ({len(poses)} augmented)"
 
 
 def supervised_loss(policy, obs: torch.Tensor, labels: torch.Tensor, dense: bool, temperature: float) -> torch.Tensor:
@@ -142,11 +149,11 @@ def train_bc(cfg: TrainConfig, run_dir: Path) -> dict:
     bc = cfg.bc
     dense = bc.targets == "dense"
     rng = np.random.default_rng(cfg.seed)
-    targets, what = _targets(cfg, rng, bc.objects, bc.seed)
+    targets, faces, what = _targets(cfg, rng, bc.objects, bc.seed)
     env = TangramEnv(dataclasses.replace(cfg.env_config(), num_worlds=min(128, len(targets)),
                                          task=cfg.task.given_targets()), seed=cfg.seed)
     t0 = time.perf_counter()
-    obs, labels = demonstrations(env, targets, dense=dense, overlap_limit=bc.overlap_limit)
+    obs, labels = demonstrations(env, targets, dense=dense, overlap_limit=bc.overlap_limit, mirrored=faces)
     log.info("%d demonstration steps from %s in %.0f s", len(obs), what, time.perf_counter() - t0)
     device = torch.device(cfg.device)
     ac = build_actor_critic(cfg.policy, env.grid, env.view, env.action_spec).to(device)
@@ -178,8 +185,9 @@ def train_bc(cfg: TrainConfig, run_dir: Path) -> dict:
     fit(bc.epochs, 0)
     greedy = policy_actor(policy)
     for r in range(1, bc.dagger_rounds + 1):
-        new, what_r = _targets(cfg, rng, bc.dagger_objects, bc.seed + r)
-        o, lb = demonstrations(env, new, actor=greedy, dense=dense, overlap_limit=bc.overlap_limit)
+        new, new_faces, what_r = _targets(cfg, rng, bc.dagger_objects, bc.seed + r)
+        o, lb = demonstrations(env, new, actor=greedy, dense=dense, overlap_limit=bc.overlap_limit,
+                               mirrored=new_faces)
         obs, labels = torch.cat([obs, o]), torch.cat([labels, lb])
         log.info("DAgger round %d: %d states of the policy's own assemblies of %s", r, len(o), what_r)
         fit(bc.dagger_epochs, r)
