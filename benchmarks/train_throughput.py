@@ -40,7 +40,8 @@ VARIANTS = {
 
 def _config(tmp: str, overrides: list[str]):
     return load_config(ROOT / "conf" / "full.yaml", [
-        f"runs_dir={tmp}", "name=bench", "collector.max_minutes=0", "logger.backends=[]",
+        # No time budget here, so no learning-rate anneal over one (the rate does not change the speed).
+        f"runs_dir={tmp}", "name=bench", "collector.max_minutes=0", "optim.lr_final=null", "logger.backends=[]",
         "logger.progress=false", "checkpoint.every=100000", "task.cache.path=null", "task.cache.size=1024",
         *overrides,
     ])
