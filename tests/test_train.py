@@ -309,3 +309,15 @@ def test_init_from_starts_ppo_from_another_runs_weights(tmp_path):
     assert all(torch.equal(a[k], b[k]) for k in a)
     with pytest.raises(CheckpointError, match="no such checkpoint"):
         Trainer(load_config(SMOKE, quiet + [f"init_from={tmp_path / 'none'}"]), tmp_path / "c")
+
+
+def test_throughput_benchmark_config_loads_from_the_shipped_conf(tmp_path):
+    """benchmarks/train_throughput.py runs conf/full.yaml without a budget; the config must still load
+    (a learning-rate anneal in the conf once stopped it with a ConfigError)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("train_throughput", ROOT / "benchmarks" / "train_throughput.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    cfg = mod._config(str(tmp_path), ["collector.total_frames=-1"])
+    assert cfg.optim.lr_final is None and cfg.collector.max_minutes <= 0
