@@ -172,6 +172,25 @@ def test_cache_keeps_faces_and_refuses_the_other_mirroring_rule(tmp_path):
     assert env.oracle_targets().mirrored.dtype == bool
 
 
+def test_turned_over_chaos_without_the_flip_is_refused_for_every_chaos_source(tmp_path, capsys):
+    """PPO with task.chaos.mirror_prob > 0 and no flip would train on faces it can never show."""
+    from mrchaos.cli.train import main as train_main
+
+    mirrored = ChaosConfig(mirror_prob=0.5)
+    cache = dataclasses.replace(TaskConfig().cache, path=str(tmp_path / "c.npz"), size=8)
+    for mix in (MixConfig(chaos=1.0, cache=0.0), MixConfig(chaos=0.0, cache=1.0)):
+        with pytest.raises(ValueError, match="mirror_prob = 0.5 .* need env.grid.flip"):
+            TangramEnv(EnvConfig(num_worlds=2, task=TaskConfig(mix=mix, chaos=mirrored, cache=cache)), seed=0)
+    assert not (tmp_path / "c.npz").exists()  # refused before a cache is built
+    # Figures only: the chaos rule is never used, so it is not an error.
+    TangramEnv(EnvConfig(num_worlds=2, task=TaskConfig(mix=MixConfig(cache=0.0, figures=1.0), chaos=mirrored)), seed=0)
+    # Both trainers, PPO and supervision from chaos, stop with the reason and a non-zero exit.
+    for algo in ([], ["algo=bc", "bc.source=chaos", "bc.objects=4", "name=bc"]):
+        assert train_main([str(ROOT / "conf" / "smoke.yaml"), "task.chaos.mirror_prob=0.5", *algo,
+                           f"runs_dir={tmp_path}"]) == 2
+        assert "need env.grid.flip" in capsys.readouterr().err
+
+
 def test_policies_act_on_the_doubled_orientations():
     from mrchaos.learn.policy import PolicyConfig, build_actor_critic
 

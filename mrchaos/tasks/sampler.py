@@ -110,6 +110,11 @@ class TargetSampler:
         if (w < 0).any() or w.sum() <= 0:
             raise ValueError(f"task mix weights must be >= 0 with a positive sum, got chaos/cache/figures = {w}")
         self.weights = w / w.sum()
+        # Without the flip a turned-over piece cannot be matched: training on such targets would
+        # pay for faces the policy can never show.
+        if cfg.chaos.mirror_prob > 0 and not flip and self.weights[:2].sum() > 0:
+            raise ValueError(f"task.chaos.mirror_prob = {cfg.chaos.mirror_prob} draws chaos objects with "
+                             "turned-over pieces, which need env.grid.flip: true; or set task.chaos.mirror_prob=0")
         self.cache: ChaosCache | None = None
         if self.weights[1] > 0:
             self.cache = self._load_or_build_cache()
