@@ -191,6 +191,20 @@ def test_turned_over_chaos_without_the_flip_is_refused_for_every_chaos_source(tm
         assert "need env.grid.flip" in capsys.readouterr().err
 
 
+def test_supervision_from_turned_over_chaos_is_refused_before_generating(tmp_path, monkeypatch, capsys):
+    """The refusal comes before thousands of chaos objects are drawn, not after."""
+    import mrchaos.learn.bc as bc
+    from mrchaos.cli.train import main as train_main
+
+    def never(*args, **kwargs):
+        raise AssertionError("chaos objects were generated before the flip check")
+
+    monkeypatch.setattr(bc, "generate", never)
+    assert train_main([str(ROOT / "conf" / "smoke.yaml"), "task.chaos.mirror_prob=0.5", "algo=bc",
+                       "bc.source=chaos", "bc.objects=4", "name=bc", f"runs_dir={tmp_path}"]) == 2
+    assert "need env.grid.flip" in capsys.readouterr().err
+
+
 def test_policies_act_on_the_doubled_orientations():
     from mrchaos.learn.policy import PolicyConfig, build_actor_critic
 

@@ -111,6 +111,7 @@ def _targets(cfg: TrainConfig, rng: np.random.Generator, n_chaos: int, seed: int
     augmented figures, or chaos objects."""
     flip = cfg.env.grid.flip
     if cfg.bc.source == "chaos":
+        cfg.task.given_targets().check_flip(flip)  # before the objects are generated, not after
         poses, _, mirrored = generate(get_piece_set(cfg.env.piece_set), n_chaos, np.random.default_rng(seed),
                                       cfg.task.chaos, cfg.env.view)
         return poses, mirrored, f"{n_chaos} chaos objects (seed {seed}, {int(mirrored.any(1).sum())} with a piece turned over)"
@@ -147,7 +148,6 @@ def train_bc(cfg: TrainConfig, run_dir: Path) -> dict:
     dense = bc.targets == "dense"
     rng = np.random.default_rng(cfg.seed)
     targets, faces, what = _targets(cfg, rng, bc.objects, bc.seed)
-    # Its target sampler refuses a task it cannot assemble (turned-over chaos pieces without the flip).
     env = TangramEnv(dataclasses.replace(cfg.env_config(), num_worlds=min(128, len(targets)),
                                          task=cfg.task.given_targets()), seed=cfg.seed)
     t0 = time.perf_counter()

@@ -73,6 +73,14 @@ class TaskConfig:
         fresh chaos only, so that no cache is loaded or built for a sampler that is never asked."""
         return dataclasses.replace(self, mix=MixConfig(chaos=1.0, cache=0.0, figures=0.0))
 
+    def check_flip(self, flip: bool) -> None:
+        """Refuse chaos objects with turned-over pieces (``chaos.mirror_prob > 0``) when the env
+        cannot turn pieces over and a chaos source (fresh or cached) is drawn from: training on
+        such targets would pay for faces the policy can never show. Figures are filtered instead."""
+        if self.chaos.mirror_prob > 0 and not flip and self.mix.chaos + self.mix.cache > 0:
+            raise ValueError(f"task.chaos.mirror_prob = {self.chaos.mirror_prob} draws chaos objects with "
+                             "turned-over pieces, which need env.grid.flip: true; or set task.chaos.mirror_prob=0")
+
 
 @dataclass
 class TargetBatch:
@@ -110,11 +118,7 @@ class TargetSampler:
         if (w < 0).any() or w.sum() <= 0:
             raise ValueError(f"task mix weights must be >= 0 with a positive sum, got chaos/cache/figures = {w}")
         self.weights = w / w.sum()
-        # Without the flip a turned-over piece cannot be matched: training on such targets would
-        # pay for faces the policy can never show.
-        if cfg.chaos.mirror_prob > 0 and not flip and self.weights[:2].sum() > 0:
-            raise ValueError(f"task.chaos.mirror_prob = {cfg.chaos.mirror_prob} draws chaos objects with "
-                             "turned-over pieces, which need env.grid.flip: true; or set task.chaos.mirror_prob=0")
+        cfg.check_flip(flip)  # before any cache is built
         self.cache: ChaosCache | None = None
         if self.weights[1] > 0:
             self.cache = self._load_or_build_cache()
