@@ -43,9 +43,11 @@ from mrchaos.learn.evaluate import (
 from mrchaos.tasks.chaos import generate
 from mrchaos.tasks.presets import TaskPreset, get_preset
 
-__all__ = ["BenchError", "PolicySpec", "resolve_policy", "parse_families", "Bench"]
+__all__ = ["BenchError", "PolicySpec", "resolve_policy", "parse_families", "Bench", "piece_breakdown"]
 
 METRICS = ("rela", "final", "iou", "strict_rela")
+#: A placement covering less than this share of its slot counts as misplaced in the per-piece table.
+MISPLACED_BELOW = 0.5
 
 
 class BenchError(MrchaosError, ValueError):
@@ -281,6 +283,7 @@ class Bench:
                     env.close()
             results["policies"][spec.name] = {"label": spec.label, "families": per_fam}
         results["task"] = self.task
+        results["piece_names"] = list(self.piece_set.names)
         results["placement"] = self.placement
         results["flip"] = self.flip
         results["needs_flip"] = {fam: self.needs_flip.get(fam, 0) for fam in results["counts"]}
@@ -312,6 +315,7 @@ class Bench:
     def summary(self, res: EpisodeResults) -> dict:
         """A family's summaries: every metric, robot failures per placement, the push's effect."""
         out: dict = {m: summarise(getattr(res, m)) for m in METRICS}
+        out["by_piece"] = piece_breakdown(res.step_coverage)
         if self.placement == "robot":
             # Failures per placement: each episode places every piece once.
             out["robot_failures"] = {k: float(v.mean() / len(self.piece_set)) for k, v in res.failures.items()}
@@ -335,6 +339,38 @@ class Bench:
                     self.video_frames.extend(frames)
 
         return on_step
+
+
+def piece_breakdown(step_coverage: np.ndarray, misplaced_below: float = MISPLACED_BELOW) -> dict[str, list[float]]:
+    """Where Rela is lost, piece by piece: each piece's mean coverage when placed (pieces are placed
+    in the set's order, so column t is piece t) and the share of its placements under
+    ``misplaced_below``, i.e. in another slot or far off its own. Columns a smaller piece set of a
+    mixed family lacks (NaN) are left out of that column's means."""
+    valid = ~np.isnan(step_coverage)
+    n = valid.sum(0)
+    cov = np.where(valid, step_coverage, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        coverage = cov.sum(0) / n
+        misplaced = (valid & (cov < misplaced_below)).sum(0) / n
+    return {"coverage": [float(v) for v in coverage], "misplaced": [float(v) for v in misplaced], "n": n.tolist()}
+
+
+def format_piece_table(results: dict, families: list[str]) -> str:
+    """Markdown: each piece's mean coverage when placed, and (in brackets) the share of its
+    placements under MISPLACED_BELOW, per policy and family."""
+    fams = [f for f in families if f in results["counts"]]
+    width = max(len(results["policies"][p]["families"][f]["by_piece"]["coverage"])
+                for p in results["policies"] for f in fams)
+    names = list(results["piece_names"])[:width] + [f"piece {i}" for i in range(len(results["piece_names"]), width)]
+    head = ["policy", "family"] + names
+    lines = [f"**Coverage of each piece when placed, % (in brackets: % of its placements under "
+             f"{100 * MISPLACED_BELOW:.0f} %)**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for pol in results["policies"].values():
+        for f in fams:
+            b = pol["families"][f]["by_piece"]
+            cells = [f"{100 * c:.1f} ({100 * m:.0f})" if k else "" for c, m, k in zip(b["coverage"], b["misplaced"], b["n"])]
+            lines.append("| " + " | ".join([pol["label"], f] + cells + [""] * (width - len(cells))) + " |")
+    return "\n".join(lines)
 
 
 def format_table(results: dict, families: list[str], markdown: bool = False) -> str:
@@ -390,7 +426,8 @@ def write_outputs(results: dict, families: list[str], out: Path) -> None:
                 lines.append(f"{name},{fam},{m},{s['mean']:.6f},{s['se']:.6f},{s['ci95']:.6f},{s['n']}")
     write_atomic(out / "results.csv", "\n".join(lines) + "\n")
     md = ["# mrchaos-bench results", "", "Mean ± 95 % interval, in percent. Rela and Final are the paper's metrics; "
-          "IoU and sRela (strict Rela) are ours.", "", format_table(results, families, markdown=True)]
+          "IoU and sRela (strict Rela) are ours.", "", format_table(results, families, markdown=True),
+          "", format_piece_table(results, families)]
     if any(results.get("needs_flip", {}).values()):
         md += ["", "Figures that need a chiral piece turned over (evaluated with --flip): "
                + ", ".join(f"{fam} {k}" for fam, k in results["needs_flip"].items())]
