@@ -359,6 +359,8 @@ def format_piece_table(results: dict, families: list[str]) -> str:
     """Markdown: each piece's mean coverage when placed, and (in brackets) the share of its
     placements under MISPLACED_BELOW, per policy and family."""
     fams = [f for f in families if f in results["counts"]]
+    if not fams or not results["policies"]:
+        return ""  # every figure skipped: nothing was placed
     width = max(len(results["policies"][p]["families"][f]["by_piece"]["coverage"])
                 for p in results["policies"] for f in fams)
     names = list(results["piece_names"])[:width] + [f"piece {i}" for i in range(len(results["piece_names"]), width)]
@@ -426,8 +428,10 @@ def write_outputs(results: dict, families: list[str], out: Path) -> None:
                 lines.append(f"{name},{fam},{m},{s['mean']:.6f},{s['se']:.6f},{s['ci95']:.6f},{s['n']}")
     write_atomic(out / "results.csv", "\n".join(lines) + "\n")
     md = ["# mrchaos-bench results", "", "Mean ± 95 % interval, in percent. Rela and Final are the paper's metrics; "
-          "IoU and sRela (strict Rela) are ours.", "", format_table(results, families, markdown=True),
-          "", format_piece_table(results, families)]
+          "IoU and sRela (strict Rela) are ours.", "", format_table(results, families, markdown=True)]
+    pieces = format_piece_table(results, families)
+    if pieces:
+        md += ["", pieces]
     if any(results.get("needs_flip", {}).values()):
         md += ["", "Figures that need a chiral piece turned over (evaluated with --flip): "
                + ", ".join(f"{fam} {k}" for fam, k in results["needs_flip"].items())]
