@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mrchaos.bench.lookahead import Lookahead
 from mrchaos.core.atomic import write_atomic
 from mrchaos.core.errors import MrchaosError
 from mrchaos.env.oracle import oracle_actions
@@ -156,11 +157,22 @@ class Bench:
         scene_fps: float = 4.0,
         task: str = "tangram",
         flip: bool = False,
+        lookahead: int = 1,
     ) -> None:
         if placement not in ("teleport", "robot"):
             raise BenchError(f"placement must be 'teleport' or 'robot', got {placement!r}")
         if scenes and placement != "robot":
             raise BenchError("filming the scene (--video, scene frames in --record) needs --placement robot")
+        if lookahead < 1:
+            raise BenchError(f"--lookahead must be >= 1, got {lookahead}")
+        if lookahead > 1 and (placement != "teleport" or perturb_after is not None):
+            # Its completions are simulated without the robot's motion or the push, so they would
+            # not predict what the evaluated episode does.
+            raise BenchError("--lookahead plans with teleport placement and no --perturb")
+        if lookahead > num_worlds:
+            raise BenchError(f"--lookahead {lookahead} needs at least as many --worlds, got {num_worlds}")
+        #: candidates per step of the test-time planner around checkpoint policies (1: greedy).
+        self.lookahead = lookahead
         self.placement, self.robot_model = placement, robot_model
         self.perturb_after, self.perturb_distance = perturb_after, perturb_distance
         self.scenes, self.scene_fps = scenes, scene_fps
@@ -256,6 +268,10 @@ class Bench:
         except (TypeError, ValueError, RuntimeError, KeyError) as e:
             raise CheckpointError(f"{spec.path}: cannot rebuild its policy ({str(e)[:200]})") from None
         ac.eval()
+        if self.lookahead > 1:
+            if st["policy"].get("name") != "spatial":
+                raise BenchError(f"{spec.path}: --lookahead needs a spatial policy (one score per grid action)")
+            return Lookahead(ac.get_policy_operator(), self.lookahead)
         return policy_actor(ac.get_policy_operator())
 
     def run(self, specs: list[PolicySpec], record=None) -> dict:
@@ -281,11 +297,15 @@ class Bench:
                     if renderer is not None:
                         renderer.close()
                     env.close()
-            results["policies"][spec.name] = {"label": spec.label, "families": per_fam}
+            label = spec.label
+            if self.lookahead > 1 and spec.kind == "checkpoint":
+                label += f" + lookahead {self.lookahead}"
+            results["policies"][spec.name] = {"label": label, "families": per_fam}
         results["task"] = self.task
         results["piece_names"] = list(self.piece_set.names)
         results["placement"] = self.placement
         results["flip"] = self.flip
+        results["lookahead"] = self.lookahead
         results["needs_flip"] = {fam: self.needs_flip.get(fam, 0) for fam in results["counts"]}
         if self.perturb_after is not None:
             results["perturb"] = {"after_step": self.perturb_after, "distance_m": self.perturb_distance}
@@ -306,6 +326,8 @@ class Bench:
                   env: TangramEnv, act, renderer, record) -> EpisodeResults:
         """One episode per target of a group, filmed and recorded as asked."""
         film = self._filmer(env, renderer, spec.name, fam, ids, record) if renderer else None
+        if isinstance(act, Lookahead):
+            act = act.actor(env, poses, mirrored)
         res = evaluate(env, poses, act, record_steps=record is not None, perturb_after=self.perturb_after,
                        perturb_distance=self.perturb_distance, on_step=film, mirrored=mirrored)
         if record is not None:

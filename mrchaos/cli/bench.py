@@ -39,6 +39,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("runs/bench"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--worlds", type=int, default=64, help="worlds evaluated at once")
+    ap.add_argument("--lookahead", type=int, default=1, metavar="K",
+                    help="plan around each checkpoint policy: at every step, try its K best actions, complete each "
+                         "greedily in the simulator and keep the one whose end has the highest IoU with the "
+                         "silhouette (no solution is read; 1: the greedy policy alone)")
     args = ap.parse_args(argv)
     return run_command("mrchaos-bench", lambda: _bench(args))
 
@@ -76,7 +80,7 @@ def _bench(args: argparse.Namespace) -> int:
     bench = Bench(sets, families, args.random_objects, args.seed, args.placement, args.worlds,
                   robot_model=args.robot_model, perturb_after=args.perturb,
                   perturb_distance=args.perturb_distance, scenes=max(args.scenes, 1 if args.video else 0) if film else 0,
-                  task=args.task, flip=flip)
+                  task=args.task, flip=flip, lookahead=args.lookahead)
     for fid, why in bench.skipped:
         print(f"skipped {fid}: {why}", file=sys.stderr)
     recorder = None
