@@ -12,6 +12,8 @@ and the bench labels it so. The cost is about k × pieces² env steps per episod
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import torch
 from tensordict import TensorDict
@@ -54,7 +56,7 @@ class Lookahead:
             # World i * k + c tries candidate c for target i; the rest repeat the last copy.
             rows = np.minimum(np.arange(nw) // k, m - 1) + start
             faces = None if mirrored is None else mirrored[rows]
-            cand = torch.as_tensor(np.minimum(np.arange(nw) % k, k - 1))
+            cand = torch.arange(nw) % k
             for t in range(p):
                 td = env.reset_to(targets[rows], faces)
                 for s in range(p):
@@ -82,7 +84,7 @@ class Lookahead:
         :func:`mrchaos.learn.evaluate.evaluate` (which takes them in chunks of the env's worlds)."""
         chosen = self.plan(env, targets, mirrored)
         n, nw, p = len(targets), env.batch_size[0], env.num_pieces
-        calls = iter(range(10**9))
+        calls = itertools.count()  # evaluate asks step by step, chunk by chunk
 
         def act(e: TangramEnv, td: TensorDict) -> torch.Tensor:
             c = next(calls)
