@@ -19,7 +19,7 @@ from mrchaos.bench.benchmark import Bench, resolve_policy
 from mrchaos.env.tangram import TangramEnv
 from mrchaos.figures.formats import load_figures
 from mrchaos.learn.evaluate import evaluate
-from mrchaos.learn.policy import PolicyConfig, build_actor_critic
+from mrchaos.learn.policy import unravel_actions
 
 # The overlap above which physics, not the counterfactual raster, decides a placement (as bc.overlap_limit).
 OVERLAP_LIMIT = 0.02
@@ -36,7 +36,7 @@ def topk_oracle(policy, k: int):
         top = scores.topk(k, -1).indices
         best = top.gather(1, worth.gather(1, top).argmax(1, keepdim=True)).squeeze(1)
         _, ny, nx = cov.shape[1:]
-        return torch.stack([best % nx, (best // nx) % ny, best // (nx * ny)], -1)
+        return unravel_actions(best, nx, ny)
 
     return act
 
@@ -54,9 +54,7 @@ def main() -> None:
     if spec.state is None or spec.state["policy"].get("name") != "spatial":
         raise SystemExit(f"{args.policy}: the diagnostic needs a spatial policy checkpoint")
     env = bench.make_env(spec)
-    ac = build_actor_critic(PolicyConfig(**spec.state["policy"]), env.grid, env.view, env.action_spec)
-    ac.load_state_dict(spec.state["model"])
-    policy = ac.eval().get_policy_operator()
+    policy = bench.policy_operator(spec, env)
     print("Rela / Final, %, when the solution picks among the policy's top k actions")
     for k in args.k:
         cells = []

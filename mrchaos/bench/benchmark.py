@@ -254,6 +254,16 @@ class Bench:
             g = torch.Generator().manual_seed(self.seed)
             nvec = torch.tensor(env.grid.nvec)
             return lambda e, td: (torch.rand((e.batch_size[0], 3), generator=g) * nvec).long()
+        policy = self.policy_operator(spec, env)
+        if self.lookahead > 1:
+            if spec.state["policy"].get("name") != "spatial":
+                raise BenchError(f"{spec.path}: --lookahead needs a spatial policy (one score per grid action)")
+            return Lookahead(policy, self.lookahead)
+        return policy_actor(policy)
+
+    def policy_operator(self, spec: PolicySpec, env: TangramEnv):
+        """A checkpoint's policy module, rebuilt for ``env`` in eval mode, after checking that the
+        checkpoint fits the env (its piece set, view and grid)."""
         from mrchaos.learn.policy import PolicyConfig, build_actor_critic
 
         st = spec.state
@@ -267,12 +277,7 @@ class Bench:
             ac.load_state_dict(st["model"])
         except (TypeError, ValueError, RuntimeError, KeyError) as e:
             raise CheckpointError(f"{spec.path}: cannot rebuild its policy ({str(e)[:200]})") from None
-        ac.eval()
-        if self.lookahead > 1:
-            if st["policy"].get("name") != "spatial":
-                raise BenchError(f"{spec.path}: --lookahead needs a spatial policy (one score per grid action)")
-            return Lookahead(ac.get_policy_operator(), self.lookahead)
-        return policy_actor(ac.get_policy_operator())
+        return ac.eval().get_policy_operator()
 
     def run(self, specs: list[PolicySpec], record=None) -> dict:
         """Results: {policy: {family: {metric: summary}}} plus per-episode arrays for sheets."""

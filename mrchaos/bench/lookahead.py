@@ -20,6 +20,7 @@ from tensordict import TensorDict
 
 from mrchaos.env.tangram import TangramEnv
 from mrchaos.learn.evaluate import Actor
+from mrchaos.learn.policy import unravel_actions
 
 __all__ = ["Lookahead"]
 
@@ -32,17 +33,12 @@ class Lookahead:
             raise ValueError(f"lookahead k must be >= 1, got {k}")
         self.policy, self.k = policy, k
 
-    def _scores(self, env: TangramEnv, td: TensorDict) -> torch.Tensor:
+    def _scores(self, td: TensorDict) -> torch.Tensor:
         with torch.no_grad():
             out = self.policy(td.select("observation").clone())
         if "logits" not in out.keys():
             raise ValueError("lookahead needs a spatial policy (one score per grid action)")
         return out["logits"].flatten(1).float()
-
-    @staticmethod
-    def _unravel(flat: torch.Tensor, env: TangramEnv) -> torch.Tensor:
-        nx, ny, _ = env.grid.nvec
-        return torch.stack([flat % nx, (flat // nx) % ny, flat // (nx * ny)], -1)
 
     def plan(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None = None) -> np.ndarray:
         """The chosen (x, y, orientation) index of every step of every target: (n, pieces, 3)."""
@@ -50,6 +46,7 @@ class Lookahead:
         if nw < k:
             raise ValueError(f"lookahead k={k} needs at least k worlds, the env has {nw}")
         per = nw // k
+        nx, ny, _ = env.grid.nvec
         chosen = np.zeros((n, p, 3), dtype=np.int64)
         for start in range(0, n, per):
             m = min(per, n - start)
@@ -63,14 +60,14 @@ class Lookahead:
                     if s < t:
                         action = torch.as_tensor(chosen[rows, s])
                     else:
-                        scores = self._scores(env, td)
+                        scores = self._scores(td)
                         if s == t:
                             # Every copy of a target sees the same state, so the same top k.
                             top = scores.topk(k, -1).indices
-                            action = self._unravel(top.gather(1, cand[:, None]).squeeze(1), env)
+                            action = unravel_actions(top.gather(1, cand[:, None]).squeeze(1), nx, ny)
                             tried = action
                         else:
-                            action = self._unravel(scores.argmax(-1), env)
+                            action = unravel_actions(scores.argmax(-1), nx, ny)
                     nxt = env.step(td.set("action", action.to(env.device)))["next"]
                     td = TensorDict(observation=nxt["observation"], batch_size=env.batch_size)
                 iou = nxt["info", "iou"][: m * k, 0].reshape(m, k)

@@ -26,7 +26,7 @@ from mrchaos.core.raster import View
 from mrchaos.env.actions import ActionGrid
 
 __all__ = ["PolicyConfig", "FactorisedCategorical", "GridCategorical", "build_actor_critic", "compile_networks",
-           "count_parameters", "POLICIES"]
+           "count_parameters", "unravel_actions", "POLICIES"]
 
 POLICIES = ("paper", "spatial")
 
@@ -112,6 +112,12 @@ def _log_prob_entropy(scores: torch.Tensor, flat: torch.Tensor) -> tuple[torch.T
 _fused_log_prob_entropy = None
 
 
+def unravel_actions(flat: torch.Tensor, nx: int, ny: int) -> torch.Tensor:
+    """(..., 3) grid actions (x, y, theta) of indices into the flattened (theta, y, x) grid of the
+    spatial head's scores."""
+    return torch.stack([flat % nx, (flat // nx) % ny, flat // (nx * ny)], -1)
+
+
 class GridCategorical(Distribution):
     """One categorical over the flattened (theta, y, x) grid; samples are (..., 3) indices (x, y, theta).
 
@@ -143,8 +149,8 @@ class GridCategorical(Distribution):
         return constraints.integer_interval(0, max(self.grid_shape) - 1)
 
     def _unravel(self, flat: torch.Tensor) -> torch.Tensor:
-        t, y, x = self.grid_shape
-        return torch.stack([flat % x, (flat // x) % y, flat // (x * y)], -1)
+        _, y, x = self.grid_shape
+        return unravel_actions(flat, x, y)
 
     def sample(self, sample_shape: torch.Size = torch.Size()) -> torch.Tensor:
         with torch.no_grad():
