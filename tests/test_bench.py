@@ -117,6 +117,23 @@ def test_lookahead_of_one_is_greedy_and_more_never_ends_below_greedy_iou():
     assert three.iou.mean() > greedy.iou.mean()
 
 
+def test_mode_window_overrides_the_checkpoint_and_lookahead_of_one_stays_greedy():
+    bench = Bench(None, ["Random"], random_objects=10, seed=5, num_worlds=12, mode_window=3)
+    spec = resolve_policy("mrchaos-dense-ppo")
+    env = bench.make_env(spec)
+    _, poses, mirrored, _ = bench.targets["Random"][0]
+    windowed = evaluate(env, poses, bench.actor(spec, env), mirrored=mirrored)
+    plain = evaluate(env, poses, Bench(None, ["Random"], random_objects=1, num_worlds=12).actor(spec, env),
+                     mirrored=mirrored)
+    assert not np.array_equal(windowed.step_coverage, plain.step_coverage)  # the override reached the policy
+    one = evaluate(env, poses, Lookahead(bench.policy_operator(spec, env), 1).actor(env, poses, mirrored),
+                   mirrored=mirrored)
+    assert np.array_equal(one.step_coverage, windowed.step_coverage)
+    res = bench.run([spec, resolve_policy("oracle")])
+    assert res["policies"]["mrchaos-dense-ppo"]["label"].endswith("mode window 3")
+    assert "mode window" not in res["policies"]["oracle"]["label"] and res["mode_window"] == 3
+
+
 def test_lookahead_bad_input(capsys):
     assert bench_main(["--policy", "mrchaos", "--lookahead", "0"]) == 2
     assert "--lookahead must be >= 1" in capsys.readouterr().err
@@ -124,6 +141,10 @@ def test_lookahead_bad_input(capsys):
     assert "teleport" in capsys.readouterr().err
     assert bench_main(["--policy", "mrchaos-paper", "--lookahead", "2", "--random-objects", "2"]) == 2
     assert "needs a spatial policy" in capsys.readouterr().err
+    assert bench_main(["--policy", "mrchaos", "--mode-window", "2"]) == 2
+    assert "--mode-window must be odd" in capsys.readouterr().err
+    assert bench_main(["--policy", "mrchaos-paper", "--mode-window", "3", "--random-objects", "2"]) == 2
+    assert "--mode-window needs a spatial policy" in capsys.readouterr().err
 
 
 def test_bench_bad_input(tmp_path, capsys):

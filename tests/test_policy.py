@@ -11,6 +11,7 @@ from mrchaos.learn.policy import (
     GridCategorical,
     PolicyConfig,
     SpatialHead,
+    SpatialTrunk,
     build_actor_critic,
 )
 
@@ -28,6 +29,19 @@ def test_grid_categorical_sampling_matches_probabilities():
     assert d.log_prob(torch.tensor([[1, 0, 0]])).exp().item() == pytest.approx(0.75, abs=1e-3)
     assert d.mode.tolist() == [[1, 0, 0]]
     assert d.entropy().item() == pytest.approx(-(0.75 * np.log(0.75) + 0.25 * np.log(0.25)), abs=1e-3)
+
+
+def test_grid_categorical_mode_window_reads_the_peak_of_mass_not_a_spike():
+    probs = torch.full((1, 1, 9, 9), 1e-6)
+    probs[0, 0, 0, 8] = 0.3  # a lone spike (x 8, y 0)
+    probs[0, 0, 4:7, 2:5] = 0.07  # a 3 x 3 plateau centred on x 3, y 5: 0.63 in all
+    logits = probs.log()
+    assert GridCategorical(logits).mode.tolist() == [[8, 0, 0]]
+    wide = GridCategorical(logits, window=3)
+    assert wide.mode.tolist() == [[3, 5, 0]]
+    assert torch.equal(GridCategorical(logits).mode_scores, GridCategorical(logits).scores)
+    # The window reads the mode only: probabilities are those of the logits.
+    assert torch.allclose(wide.log_prob(torch.tensor([[8, 0, 0]])).exp(), 0.3 / probs.sum(), atol=1e-4)
 
 
 def test_factorised_categorical():
@@ -61,10 +75,10 @@ def test_spatial_head_reads_the_grid_positions():
     assert abs(grid.xs[ix] - x) < cell and abs(grid.ys[iy] - y) < cell
 
 
-@pytest.mark.parametrize("name", ["paper", "spatial"])
-def test_actor_critic_shapes_and_determinism(name):
+@pytest.mark.parametrize("name,context", [("paper", 0), ("spatial", 0), ("spatial", 8)])
+def test_actor_critic_shapes_and_determinism(name, context):
     grid, view = ActionGrid(), View()
-    ac = build_actor_critic(PolicyConfig(name=name, channels=[8, 8, 8], hidden=32), grid, view)
+    ac = build_actor_critic(PolicyConfig(name=name, channels=[8, 8, 8], hidden=32, context=context), grid, view)
     policy, value = ac.get_policy_operator(), ac.get_value_operator()
     td = TensorDict(observation=torch.randint(0, 256, (4, 2, 120, 120), dtype=torch.uint8), batch_size=[4])
     out = policy(td.clone())
@@ -81,6 +95,37 @@ def test_policy_config_errors():
         PolicyConfig(name="transformer")
     with pytest.raises(ValueError, match="channels"):
         PolicyConfig(channels=[8, 8])
+    with pytest.raises(ValueError, match="policy.context"):
+        PolicyConfig(context=-1)
+    with pytest.raises(ValueError, match="odd"):
+        PolicyConfig(mode_window=2)
+    with pytest.raises(ValueError, match="spatial"):
+        PolicyConfig(name="paper", mode_window=3)
+
+
+@pytest.mark.parametrize("context", [0, 8])
+def test_spatial_context_path_reaches_across_the_view(context):
+    """Without the global FiLM, a logit at the view's centre sees a pixel in a corner (13 cells
+    away) only through the context path; the fine layers alone see 3 cells around."""
+    torch.manual_seed(0)
+    grid, view = ActionGrid(), View()
+    ac = build_actor_critic(PolicyConfig(channels=[8, 8, 8], hidden=16, context=context), grid, view)
+    trunk = next(m for m in ac.modules() if isinstance(m, SpatialTrunk))
+    with torch.no_grad():
+        trunk.film.weight.zero_()
+        trunk.film.bias.zero_()
+        if context:  # the path starts switched off (a zero way back); as after some training
+            trunk.context["up"].weight.normal_()
+    policy = ac.get_policy_operator()
+    obs = torch.randint(0, 256, (1, 2, 120, 120), dtype=torch.uint8)
+    far = obs.clone()
+    far[0, :, -8:, -8:] = 255 - far[0, :, -8:, -8:]  # bottom-right corner
+    with torch.no_grad():
+        a, b = (policy.get_dist(TensorDict(observation=o, batch_size=[1])).scores.view(1, grid.norient, grid.ny, grid.nx)
+                for o in (obs, far))
+    cy, cx = grid.ny // 2, grid.nx // 2
+    centre = (a - b)[..., cy - 1:cy + 2, cx - 1:cx + 2].abs().max().item()
+    assert (centre > 1e-6) == bool(context)
 
 
 @pytest.mark.parametrize("upsample", [1, 2])

@@ -30,7 +30,7 @@ def topk_oracle(policy, k: int):
 
     def act(env: TangramEnv, td) -> torch.Tensor:
         with torch.no_grad():
-            scores = policy(td.select("observation").clone())["logits"].flatten(1).float()
+            scores = policy.get_dist(td.select("observation").clone()).mode_scores
         cov, overlap = env.counterfactual()
         worth = torch.where(overlap.flatten(1) <= OVERLAP_LIMIT, cov.flatten(1), -1.0)
         top = scores.topk(k, -1).indices

@@ -140,6 +140,9 @@ class Bench:
             H-Hard, H-Fiendish), "cutlery" or "soda" (families Authored and Random).
         flip: evaluate figures that need a chiral piece turned over instead of skipping them; the
             baselines get an action grid with the flip (a checkpoint keeps its own grid).
+        lookahead: candidates per step of a test-time planner around checkpoint policies (1: none).
+        mode_window: overrides the checkpoints' ``policy.mode_window`` (how the spatial policy's
+            deterministic action is read); None keeps each checkpoint's own.
     """
 
     def __init__(
@@ -158,6 +161,7 @@ class Bench:
         task: str = "tangram",
         flip: bool = False,
         lookahead: int = 1,
+        mode_window: int | None = None,
     ) -> None:
         if placement not in ("teleport", "robot"):
             raise BenchError(f"placement must be 'teleport' or 'robot', got {placement!r}")
@@ -173,6 +177,9 @@ class Bench:
             raise BenchError(f"--lookahead {lookahead} needs at least as many --worlds, got {num_worlds}")
         #: candidates per step of the test-time planner around checkpoint policies (1: greedy).
         self.lookahead = lookahead
+        if mode_window is not None and (mode_window < 1 or mode_window % 2 == 0):
+            raise BenchError(f"--mode-window must be odd and >= 1, got {mode_window}")
+        self.mode_window = mode_window
         self.placement, self.robot_model = placement, robot_model
         self.perturb_after, self.perturb_distance = perturb_after, perturb_distance
         self.scenes, self.scene_fps = scenes, scene_fps
@@ -271,8 +278,12 @@ class Bench:
         trained = st.get("piece_set")
         same_kind = trained in piece_set_names() and get_piece_set(trained).kind == env.piece_set.kind
         check_header(st, spec.path, env, piece_set=env.piece_set.name if same_kind else None)
+        if self.mode_window is not None and st["policy"].get("name") != "spatial":
+            raise BenchError(f"{spec.path}: --mode-window needs a spatial policy (one score per grid action)")
         try:
             pcfg = PolicyConfig(**st["policy"])
+            if self.mode_window is not None:
+                pcfg = dataclasses.replace(pcfg, mode_window=self.mode_window)
             ac = build_actor_critic(pcfg, env.grid, env.view, env.action_spec)
             ac.load_state_dict(st["model"])
         except (TypeError, ValueError, RuntimeError, KeyError) as e:
@@ -303,6 +314,8 @@ class Bench:
                         renderer.close()
                     env.close()
             label = spec.label
+            if self.mode_window is not None and spec.kind == "checkpoint":
+                label += f", mode window {self.mode_window}"
             if self.lookahead > 1 and spec.kind == "checkpoint":
                 label += f" + lookahead {self.lookahead}"
             results["policies"][spec.name] = {"label": label, "families": per_fam}
@@ -311,6 +324,7 @@ class Bench:
         results["placement"] = self.placement
         results["flip"] = self.flip
         results["lookahead"] = self.lookahead
+        results["mode_window"] = self.mode_window
         results["needs_flip"] = {fam: self.needs_flip.get(fam, 0) for fam in results["counts"]}
         if self.perturb_after is not None:
             results["perturb"] = {"after_step": self.perturb_after, "distance_m": self.perturb_distance}

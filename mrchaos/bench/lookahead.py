@@ -20,13 +20,13 @@ from tensordict import TensorDict
 
 from mrchaos.env.tangram import TangramEnv
 from mrchaos.learn.evaluate import Actor
-from mrchaos.learn.policy import unravel_actions
+from mrchaos.learn.policy import GridCategorical, unravel_actions
 
 __all__ = ["Lookahead"]
 
 
 class Lookahead:
-    """Plans whole episodes for a spatial policy (its ``logits`` of shape (B, T, Y, X))."""
+    """Plans whole episodes for a spatial policy (a ``GridCategorical`` over the grid's actions)."""
 
     def __init__(self, policy, k: int) -> None:
         if k < 1:
@@ -35,10 +35,11 @@ class Lookahead:
 
     def _scores(self, td: TensorDict) -> torch.Tensor:
         with torch.no_grad():
-            out = self.policy(td.select("observation").clone())
-        if "logits" not in out.keys():
+            dist = self.policy.get_dist(td.select("observation").clone())
+        if not isinstance(dist, GridCategorical):
             raise ValueError("lookahead needs a spatial policy (one score per grid action)")
-        return out["logits"].flatten(1).float()
+        # The policy's own order (its mode is the first), so that k = 1 is the greedy policy.
+        return dist.mode_scores
 
     def plan(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None = None) -> np.ndarray:
         """The chosen (x, y, orientation) index of every step of every target: (n, pieces, 3)."""

@@ -43,6 +43,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="plan around each checkpoint policy: at every step, try its K best actions, complete each "
                          "greedily in the simulator and keep the one whose end has the highest IoU with the "
                          "silhouette (no solution is read; 1: the greedy policy alone)")
+    ap.add_argument("--mode-window", type=int, metavar="W",
+                    help="read each spatial checkpoint's deterministic action as the one whose WxW neighbourhood "
+                         "holds the most probability (odd; 1: the most probable action; default: the checkpoint's "
+                         "own policy.mode_window)")
     args = ap.parse_args(argv)
     return run_command("mrchaos-bench", lambda: _bench(args))
 
@@ -80,7 +84,8 @@ def _bench(args: argparse.Namespace) -> int:
     bench = Bench(sets, families, args.random_objects, args.seed, args.placement, args.worlds,
                   robot_model=args.robot_model, perturb_after=args.perturb,
                   perturb_distance=args.perturb_distance, scenes=max(args.scenes, 1 if args.video else 0) if film else 0,
-                  task=args.task, flip=flip, lookahead=args.lookahead)
+                  task=args.task, flip=flip, lookahead=args.lookahead,
+                  mode_window=args.mode_window)
     for fid, why in bench.skipped:
         print(f"skipped {fid}: {why}", file=sys.stderr)
     recorder = None

@@ -43,6 +43,16 @@ class PolicyConfig:
         upsample: the spatial head's logit lattice is this many times finer than the trunk's
             (sub-pixel convolution): 1 reads the 8.7 mm trunk cells directly, 2 gives 4.3 mm
             cells, about the action grid's 4 mm step, so a logit peak can sit on one action.
+        context: width of the spatial trunk's coarse context path (0 = none, as the first shipped
+            networks): a stride-2 step to 17 mm cells, three residual 3x3 blocks dilated 1, 2 and 4
+            that together see about 13 cm each way (half the view), added back to the fine
+            features. The fine layers alone see about 3 cm each way, less than a large triangle,
+            so where a piece fits among the other pieces' slots is out of their reach.
+        mode_window: the spatial policy's deterministic action is the grid action whose
+            window x window neighbourhood (same orientation) holds the most probability; 1 is
+            the single most probable action. Sampling, log-probabilities and training are
+            unchanged. A window of 3 (plus or minus one 4 mm step) reads the peak of the
+            placement's probability rather than its highest single spike.
     """
 
     name: str = "spatial"
@@ -50,6 +60,8 @@ class PolicyConfig:
     channels: list[int] = field(default_factory=lambda: [16, 32, 32])
     hidden: int = 512
     upsample: int = 1
+    context: int = 0
+    mode_window: int = 1
 
     def __post_init__(self) -> None:
         if self.name not in POLICIES:
@@ -60,6 +72,12 @@ class PolicyConfig:
             raise ValueError(f"policy.pool must be >= 1, got {self.pool}")
         if self.upsample < 1:
             raise ValueError(f"policy.upsample must be >= 1, got {self.upsample}")
+        if self.context < 0:
+            raise ValueError(f"policy.context must be >= 0 (0 = no context path), got {self.context}")
+        if self.mode_window < 1 or self.mode_window % 2 == 0:
+            raise ValueError(f"policy.mode_window must be odd and >= 1, got {self.mode_window}")
+        if self.name != "spatial" and self.mode_window != 1:
+            raise ValueError(f"policy.mode_window needs the spatial policy (one score per grid action), got {self.name!r}")
 
 
 class FactorisedCategorical(Distribution):
@@ -126,15 +144,17 @@ class GridCategorical(Distribution):
     the Gumbel-max trick (a uniform draw and two logarithms per category) 0.3 ms, the
     inverse CDF 0.035 ms (measured). A :meth:`log_prob` taken with gradients also computes
     the entropy from the same log-probabilities, and :meth:`entropy` returns it (the PPO
-    loss asks for both, in that order).
+    loss asks for both, in that order). ``window`` > 1 makes :attr:`mode` the action whose
+    window x window neighbourhood holds the most probability (:attr:`mode_scores`).
     """
 
     arg_constraints: dict = {}
     has_enumerate_support = False
 
-    def __init__(self, logits: torch.Tensor) -> None:
+    def __init__(self, logits: torch.Tensor, window: int = 1) -> None:
         # logits: (..., T, Y, X), unnormalised
         self.grid_shape = logits.shape[-3:]
+        self.window = window
         self.scores = logits.flatten(-3).float()
         self._entropy: torch.Tensor | None = None
         super().__init__(batch_shape=logits.shape[:-3], event_shape=torch.Size([3]), validate_args=False)
@@ -178,8 +198,21 @@ class GridCategorical(Distribution):
         return _entropy(self.logits)
 
     @property
+    def mode_scores(self) -> torch.Tensor:
+        """(..., T*Y*X) scores whose order is the policy's preference among actions: the logits,
+        or with a window the log of the probability within each action's neighbourhood. The
+        mode is their argmax; a planner takes its candidates from their top k."""
+        if self.window == 1:
+            return self.scores
+        t, y, x = self.grid_shape
+        p = torch.softmax(self.scores, -1).reshape(-1, 1, y, x)
+        # Zero padding: the window's sum at the grid's edge counts only actions that exist.
+        mass = F.avg_pool2d(p, self.window, stride=1, padding=self.window // 2)
+        return mass.clamp_min(1e-30).log().reshape(self.scores.shape)
+
+    @property
     def mode(self) -> torch.Tensor:
-        return self._unravel(self.scores.argmax(-1))
+        return self._unravel(self.mode_scores.argmax(-1))
 
     @property
     def deterministic_sample(self) -> torch.Tensor:
@@ -231,7 +264,8 @@ class SpatialTrunk(nn.Module):
 
     The first layer cuts the image into 4x4 patches (as a stride-4 conv), which keeps
     the later 3x3 layers at 30x30 and the whole net cheap on a CPU; the dilated last
-    layer sees about 8 cm around every cell.
+    layer sees about 3 cm each way around a cell, and the optional context path
+    (``PolicyConfig.context``) about 13 cm.
     """
 
     def __init__(self, cfg: PolicyConfig, size: int) -> None:
@@ -244,6 +278,18 @@ class SpatialTrunk(nn.Module):
             nn.Conv2d(c1, c2, 3, padding=1), nn.ReLU(),
             nn.Conv2d(c2, c3, 3, padding=2, dilation=2), nn.ReLU(),
         )
+        self.context = None
+        if cfg.context:
+            w = cfg.context
+            self.context = nn.ModuleDict({
+                "down": nn.Conv2d(c3, w, 3, stride=2, padding=1),
+                "blocks": nn.ModuleList(nn.Conv2d(w, w, 3, padding=d, dilation=d) for d in (1, 2, 4)),
+                "up": nn.Conv2d(w, c3, 1),
+            })
+            # Zero-initialised way back: the net starts as the one without the path and learns
+            # how much context to add (in the pilot, a randomly initialised path slowed the loss).
+            nn.init.zeros_(self.context["up"].weight)
+            nn.init.zeros_(self.context["up"].bias)
         self.ctx = nn.Sequential(nn.Linear(2 * c3, cfg.hidden), nn.ReLU())
         self.film = nn.Linear(cfg.hidden, 2 * c3)
         self.out_channels = c3
@@ -255,6 +301,11 @@ class SpatialTrunk(nn.Module):
         # channels_last halves the cost of these small convolutions on CPU (measured).
         x = _prep(obs.reshape(-1, *obs.shape[-3:]), self.pool).contiguous(memory_format=torch.channels_last)
         f = self.enc(x)
+        if self.context is not None:
+            h = F.relu(self.context["down"](f))
+            for block in self.context["blocks"]:
+                h = F.relu(h + block(h))
+            f = F.relu(f + F.interpolate(self.context["up"](h), size=f.shape[-2:], mode="nearest"))
         g = self.ctx(torch.cat([f.mean((-2, -1)), f.amax((-2, -1))], -1))
         scale, shift = self.film(g).chunk(2, -1)
         f = F.relu(f * (1 + scale[..., None, None]) + shift[..., None, None])
@@ -343,7 +394,7 @@ def build_actor_critic(cfg: PolicyConfig, grid: ActionGrid, view: View, action_s
         head = TensorDictModule(SpatialHead(trunk.out_channels, trunk.cells, grid, view, cfg.upsample), in_keys=["features"], out_keys=["logits"])
         actor = ProbabilisticActor(
             head, in_keys=["logits"], out_keys=["action"], spec=action_spec,
-            distribution_class=GridCategorical, return_log_prob=True,
+            distribution_class=GridCategorical, distribution_kwargs={"window": cfg.mode_window}, return_log_prob=True,
         )
         value = ValueOperator(_Value(cfg.hidden), in_keys=["hidden"])
     return ActorValueOperator(common, actor, value)
