@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 from mrchaos.learn.checkpoint import load_checkpoint, save_checkpoint
+from mrchaos.learn.policy import PolicyConfig
 
 KEEP = ("kind", "config", "policy", "piece_set", "obs_shape", "grid", "view_extent", "model", "curriculum",
         "iteration", "frames", "episodes", "minutes")
@@ -21,10 +22,18 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("run", type=Path)
     ap.add_argument("name")
+    ap.add_argument("--mode-window", type=int, metavar="W",
+                    help="set the shipped spatial policy's policy.mode_window (how its deterministic action is "
+                         "read; choose it on objects the bench does not use)")
     args = ap.parse_args()
     st = load_checkpoint(args.run / "checkpoints" / "last.pt")
     out = {k: st[k] for k in KEEP if k in st}
     out["curriculum"] = {k: out["curriculum"][k] for k in ("stage", "switched_at")}
+    if args.mode_window is not None:
+        # Checked like a config's (odd, spatial only), then written where the bench reads it.
+        PolicyConfig(**{**out["policy"], "mode_window": args.mode_window})
+        out["policy"] = {**out["policy"], "mode_window": args.mode_window}
+        out["config"]["policy"] = {**out["config"]["policy"], "mode_window": args.mode_window}
     ev = args.run / "eval.json"
     if ev.exists():
         out["eval"] = json.loads(ev.read_text())
