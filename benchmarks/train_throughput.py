@@ -11,7 +11,7 @@ Then, for the default (spatial) policy, collection alone through each collector 
 workers of 256 worlds on one thread. Training on the GPU: add ``device=cuda``.
 
     python benchmarks/train_throughput.py [key=value ...] [--iterations 4] [--threads 2] [--workers 2]
-        [--variants paper paper-fullres spatial] [--collectors sync multisync ray]
+        [--variants paper paper-fullres spatial spatial-context] [--collectors sync multisync ray]
 
 (Config overrides come first: after ``--variants`` or ``--collectors`` they would be read as names.)
 """
@@ -35,6 +35,8 @@ VARIANTS = {
     "paper": ["policy.name=paper", "policy.pool=2", "policy.channels=[32,64,64]"],
     "paper-fullres": ["policy.name=paper", "policy.pool=1", "policy.channels=[32,64,64]"],
     "spatial": ["policy.name=spatial", "policy.pool=1", "policy.channels=[16,32,32]"],
+    # The net of the shipped mrchaos-dense and mrchaos-dense-ppo (conf/dense.yaml).
+    "spatial-context": ["policy.name=spatial", "policy.pool=1", "policy.channels=[16,32,32]", "policy.context=32"],
 }
 
 

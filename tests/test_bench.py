@@ -118,7 +118,8 @@ def test_lookahead_of_one_is_greedy_and_more_never_ends_below_greedy_iou():
 
 
 def test_mode_window_overrides_the_checkpoint_and_lookahead_of_one_stays_greedy():
-    bench = Bench(None, ["Random"], random_objects=10, seed=5, num_worlds=12, mode_window=3)
+    # The shipped checkpoint reads its mode over 3 x 3; the override asks for 5 x 5.
+    bench = Bench(None, ["Random"], random_objects=10, seed=5, num_worlds=12, mode_window=5)
     spec = resolve_policy("mrchaos-dense-ppo")
     env = bench.make_env(spec)
     _, poses, mirrored, _ = bench.targets["Random"][0]
@@ -130,8 +131,8 @@ def test_mode_window_overrides_the_checkpoint_and_lookahead_of_one_stays_greedy(
                    mirrored=mirrored)
     assert np.array_equal(one.step_coverage, windowed.step_coverage)
     res = bench.run([spec, resolve_policy("oracle")])
-    assert res["policies"]["mrchaos-dense-ppo"]["label"].endswith("mode window 3")
-    assert "mode window" not in res["policies"]["oracle"]["label"] and res["mode_window"] == 3
+    assert res["policies"]["mrchaos-dense-ppo"]["label"].endswith("mode window 5")
+    assert "mode window" not in res["policies"]["oracle"]["label"] and res["mode_window"] == 5
 
 
 def test_lookahead_bad_input(capsys):
