@@ -287,7 +287,7 @@ class SpatialTrunk(nn.Module):
                 "up": nn.Conv2d(w, c3, 1),
             })
             # Zero-initialised way back: the net starts as the one without the path and learns
-            # how much context to add (in the pilot, a randomly initialised path slowed the loss).
+            # how much context to add.
             nn.init.zeros_(self.context["up"].weight)
             nn.init.zeros_(self.context["up"].bias)
         self.ctx = nn.Sequential(nn.Linear(2 * c3, cfg.hidden), nn.ReLU())
