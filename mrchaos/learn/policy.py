@@ -204,7 +204,7 @@ class GridCategorical(Distribution):
         mode is their argmax; a planner takes its candidates from their top k."""
         if self.window == 1:
             return self.scores
-        t, y, x = self.grid_shape
+        _, y, x = self.grid_shape
         p = torch.softmax(self.scores, -1).reshape(-1, 1, y, x)
         # Zero padding: the window's sum at the grid's edge counts only actions that exist.
         mass = F.avg_pool2d(p, self.window, stride=1, padding=self.window // 2)
