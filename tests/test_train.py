@@ -211,13 +211,19 @@ def test_dense_supervision_with_the_flip_smoke(tmp_path, caplog):
     rc = train_main([str(ROOT / "conf" / "dense.yaml"), f"runs_dir={tmp_path}", "env.grid.flip=true",
                      "task.chaos.mirror_prob=0.5", "bc.objects=48", "bc.epochs=3", "bc.dagger_rounds=1",
                      "bc.dagger_objects=16", "bc.dagger_epochs=1", "env.num_worlds=16", "precision=fp32",
-                     "policy.channels=[8,16,16]", "policy.hidden=64"])
+                     "policy.channels=[8,16,16]", "policy.hidden=64", "optim.lr=1e-3", "optim.lr_final=1e-4"])
     assert rc == 0
     turned = [r.getMessage() for r in caplog.records if "with a piece turned over" in r.getMessage()]
     assert turned and " 0 with a piece turned over" not in turned[0]
     with open(tmp_path / "dense" / "metrics.csv") as f:
         rows = list(csv.DictReader(f))
     assert [r["round"] for r in rows] == ["0", "0", "0", "1"] and float(rows[2]["loss"]) < float(rows[0]["loss"])
+    # optim.lr_final anneals over all four planned epochs, the DAgger round's included: each
+    # epoch's last minibatch (48 objects x 7 steps in 2 minibatches of 256, then 64 + 112 = 448) runs at
+    # the rate of its start plus its share.
+    lrs = [float(r["lr"]) for r in rows]
+    shares = (256 / 336,) * 3 + (256 / 448,)
+    assert lrs == pytest.approx([1e-3 - 9e-4 * (e + f) / 4 for e, f in enumerate(shares)], abs=1e-6)  # 6 decimals
     from mrchaos.bench.benchmark import resolve_policy
 
     assert resolve_policy(str(tmp_path / "dense")).flips

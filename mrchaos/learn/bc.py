@@ -156,8 +156,10 @@ def train_bc(cfg: TrainConfig, run_dir: Path) -> dict:
     device = torch.device(cfg.device)
     ac = build_actor_critic(cfg.policy, env.grid, env.view, env.action_spec).to(device)
     policy = ac.get_policy_operator()
-    opt = torch.optim.Adam(ac.parameters(), lr=cfg.optim.lr)
+    opt = torch.optim.Adam(ac.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
     rows: list[dict] = []
+    # The budget that ``optim.lr_final`` anneals over is every planned epoch, DAgger rounds included.
+    planned = bc.epochs + bc.dagger_rounds * bc.dagger_epochs
 
     def fit(epochs: int, round_: int) -> None:
         n = len(obs)
@@ -166,6 +168,8 @@ def train_bc(cfg: TrainConfig, run_dir: Path) -> dict:
             total, count = 0.0, 0
             for i in range(0, n, bc.minibatch_size):
                 idx = perm[i : i + bc.minibatch_size]
+                for group in opt.param_groups:
+                    group["lr"] = cfg.optim.learning_rate((len(rows) + i / n) / planned)
                 # The labelled data stays on the CPU (it can be large); minibatches go to the device.
                 with autocast(cfg.precision, device):
                     loss = supervised_loss(policy, obs[idx].to(device), labels[idx].to(device), dense,
@@ -177,7 +181,7 @@ def train_bc(cfg: TrainConfig, run_dir: Path) -> dict:
                 total += loss.item() * len(idx)
                 count += len(idx)
             rows.append({"epoch": len(rows) + 1, "round": round_, "samples": n, "loss": total / count,
-                         "minutes": (time.perf_counter() - t0) / 60})
+                         "lr": opt.param_groups[0]["lr"], "minutes": (time.perf_counter() - t0) / 60})
             log.info("bc epoch %d (round %d, %d samples): loss %.4f", len(rows), round_, n, total / count)
 
     fit(bc.epochs, 0)
@@ -195,7 +199,7 @@ def train_bc(cfg: TrainConfig, run_dir: Path) -> dict:
         "episodes": len(targets) + bc.dagger_rounds * bc.dagger_objects, "minutes": (time.perf_counter() - t0) / 60,
     }
     save_checkpoint(run_dir / "checkpoints" / "last.pt", state)
-    fields = ["epoch", "round", "samples", "loss", "minutes"]
+    fields = ["epoch", "round", "samples", "loss", "lr", "minutes"]
     write_atomic(run_dir / "metrics.csv", ",".join(fields) + "\n"
                  + "".join(",".join(f"{r[k]:.6f}" if isinstance(r[k], float) else str(r[k]) for k in fields) + "\n"
                            for r in rows))

@@ -129,8 +129,9 @@ class OptimConfig:
     """Adam (the paper's learning rate), an optional linear anneal, and gradient clipping.
 
     ``lr_final`` anneals the learning rate linearly from ``lr`` to it as the run spends its
-    budget: the larger of frames / ``collector.total_frames`` and minutes /
-    ``collector.max_minutes``. None keeps ``lr`` constant (the paper's setting).
+    budget: for PPO the larger of frames / ``collector.total_frames`` and minutes /
+    ``collector.max_minutes``, for supervision (``algo: bc``) the planned epochs, DAgger
+    rounds' included. None keeps ``lr`` constant (the paper's setting).
     """
 
     lr: float = 2e-4
@@ -260,7 +261,7 @@ class TrainConfig:
             raise ValueError(f"algo must be 'ppo' or 'bc', got {self.algo!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
-        if self.optim.lr_final is not None and self.collector.total_frames <= 0 and self.collector.max_minutes <= 0:
+        if self.algo == "ppo" and self.optim.lr_final is not None and self.collector.total_frames <= 0 and self.collector.max_minutes <= 0:
             raise ValueError("optim.lr_final anneals over the run's budget: set collector.total_frames or "
                              "collector.max_minutes")
 
