@@ -44,6 +44,26 @@ def test_grid_categorical_mode_window_reads_the_peak_of_mass_not_a_spike():
     assert torch.allclose(wide.log_prob(torch.tensor([[8, 0, 0]])).exp(), 0.3 / probs.sum(), atol=1e-4)
 
 
+def test_grid_categorical_top_modes_are_separate_peaks_under_a_window():
+    probs = torch.full((1, 2, 9, 9), 1e-6)
+    probs[0, 0, 4:7, 2:5] = 0.07  # a 3 x 3 plateau centred on x 3, y 5 (orientation 0)
+    probs[0, 0, 5, 3] = 0.08
+    probs[0, 1, 1, 7] = 0.1  # a plus-shaped peak centred on x 7, y 1 (orientation 1): 0.2 in all
+    probs[0, 1, [0, 2, 1, 1], [7, 7, 6, 8]] = 0.025
+    logits = probs.log()
+    flat = lambda t, y, x: (t * 9 + y) * 9 + x  # noqa: E731
+    # The windowed scores' plain top 2 are the plateau's centre and one of its neighbours ...
+    wide = GridCategorical(logits, window=3)
+    first, second = wide.mode_scores.topk(2, -1).indices[0].tolist()
+    assert first == flat(0, 5, 3) and second in (flat(0, 4, 3), flat(0, 5, 2), flat(0, 5, 4), flat(0, 6, 3))
+    # ... the top modes are the two peaks, the mode first.
+    assert wide.top_modes(2).tolist() == [[flat(0, 5, 3), flat(1, 1, 7)]]
+    assert wide.top_modes(1).tolist() == [[flat(*reversed(wide.mode[0].tolist()))]]
+    # Without a window they are the top logits.
+    plain = GridCategorical(logits)
+    assert torch.equal(plain.top_modes(4), logits.flatten(1).topk(4, -1).indices)
+
+
 def test_factorised_categorical():
     lx, ly, lt = torch.randn(5, 51), torch.randn(5, 51), torch.randn(5, 8)
     d = FactorisedCategorical(lx, ly, lt)

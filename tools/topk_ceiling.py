@@ -30,10 +30,9 @@ def topk_oracle(policy, k: int):
 
     def act(env: TangramEnv, td) -> torch.Tensor:
         with torch.no_grad():
-            scores = policy.get_dist(td.select("observation").clone()).mode_scores
+            top = policy.get_dist(td.select("observation").clone()).top_modes(k)
         cov, overlap = env.counterfactual()
         worth = torch.where(overlap.flatten(1) <= OVERLAP_LIMIT, cov.flatten(1), -1.0)
-        top = scores.topk(k, -1).indices
         best = top.gather(1, worth.gather(1, top).argmax(1, keepdim=True)).squeeze(1)
         _, ny, nx = cov.shape[1:]
         return unravel_actions(best, nx, ny)

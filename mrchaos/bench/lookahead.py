@@ -2,7 +2,8 @@
 completions in the simulator end, scored on the silhouette alone (no solution is read).
 
 For every step t of an episode, k copies of the world replay the placements chosen so far, each
-copy places the piece at one of the policy's k highest-scoring actions, and the policy then
+copy places the piece at one of the policy's k best actions (``GridCategorical.top_modes``: with a
+mode window, k separate peaks), and the policy then
 completes the assembly greedily. The candidate whose completion reaches the highest IoU of the
 occupied area with the silhouette wins (ties go to the policy's order, so k = 1 is the greedy
 policy). IoU is observable: the silhouette is the prompt and the occupied area is the view. The
@@ -33,13 +34,12 @@ class Lookahead:
             raise ValueError(f"lookahead k must be >= 1, got {k}")
         self.policy, self.k = policy, k
 
-    def _scores(self, td: TensorDict) -> torch.Tensor:
+    def _dist(self, td: TensorDict) -> GridCategorical:
         with torch.no_grad():
             dist = self.policy.get_dist(td.select("observation").clone())
         if not isinstance(dist, GridCategorical):
             raise ValueError("lookahead needs a spatial policy (one score per grid action)")
-        # The policy's own order (its mode is the first), so that k = 1 is the greedy policy.
-        return dist.mode_scores
+        return dist
 
     def plan(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None = None) -> np.ndarray:
         """The chosen (x, y, orientation) index of every step of every target: (n, pieces, 3)."""
@@ -61,14 +61,15 @@ class Lookahead:
                     if s < t:
                         action = torch.as_tensor(chosen[rows, s])
                     else:
-                        scores = self._scores(td)
+                        dist = self._dist(td)
                         if s == t:
-                            # Every copy of a target sees the same state, so the same top k.
-                            top = scores.topk(k, -1).indices
+                            # Every copy of a target sees the same state, so the same top k; the
+                            # policy's own order (its mode first), so that k = 1 is the greedy policy.
+                            top = dist.top_modes(k)
                             action = unravel_actions(top.gather(1, cand[:, None]).squeeze(1), nx, ny)
                             tried = action
                         else:
-                            action = unravel_actions(scores.argmax(-1), nx, ny)
+                            action = dist.mode
                     nxt = env.step(td.set("action", action.to(env.device)))["next"]
                     td = TensorDict(observation=nxt["observation"], batch_size=env.batch_size)
                 iou = nxt["info", "iou"][: m * k, 0].reshape(m, k)

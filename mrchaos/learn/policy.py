@@ -201,7 +201,7 @@ class GridCategorical(Distribution):
     def mode_scores(self) -> torch.Tensor:
         """(..., T*Y*X) scores whose order is the policy's preference among actions: the logits,
         or with a window the log of the probability within each action's neighbourhood. The
-        mode is their argmax; a planner takes its candidates from their top k."""
+        mode is their argmax; a planner takes its candidates from :meth:`top_modes`."""
         if self.window == 1:
             return self.scores
         _, y, x = self.grid_shape
@@ -209,6 +209,21 @@ class GridCategorical(Distribution):
         # Zero padding: the window's sum at the grid's edge counts only actions that exist.
         mass = F.avg_pool2d(p, self.window, stride=1, padding=self.window // 2)
         return mass.clamp_min(1e-30).log().reshape(self.scores.shape)
+
+    def top_modes(self, k: int) -> torch.Tensor:
+        """(..., k) flat indices of the ``k`` best actions in the policy's order, the mode first.
+
+        With a window, only actions whose score is the largest within their own window (same
+        orientation) are candidates, so that the k are k separate peaks rather than the
+        neighbours of one: windowed scores are smooth. With window 1 this is the top k logits."""
+        scores = self.mode_scores
+        if self.window > 1:
+            _, y, x = self.grid_shape
+            grid = scores.reshape(-1, 1, y, x)
+            peak = grid == F.max_pool2d(grid, self.window, stride=1, padding=self.window // 2)
+            # Off-peak actions stay below every peak (scores >= log 1e-30), in their own order.
+            scores = torch.where(peak, grid, grid - 1e3).reshape(scores.shape)
+        return scores.topk(k, -1).indices
 
     @property
     def mode(self) -> torch.Tensor:
