@@ -5,7 +5,7 @@ import pytest
 import shapely
 
 from mrchaos.bench.benchmark import Bench, BenchError, parse_families, piece_breakdown, resolve_policy
-from mrchaos.bench.lookahead import Lookahead
+from mrchaos.learn.planner import Lookahead
 from mrchaos.cli.bench import main as bench_main
 from mrchaos.core.geometry import rigid_transform
 from mrchaos.learn.evaluate import evaluate
@@ -254,3 +254,15 @@ def test_supervised_chaos_policies_beat_the_ppo_policy_on_random(tmp_path):
     final = {k: v["families"]["Random"]["final"]["mean"] for k, v in res.items()}
     supervised = min(final["mrchaos-dense"], final["mrchaos-bc-chaos"], final["mrchaos-dense-ppo"])
     assert supervised > 0.85 and supervised > final["mrchaos"] + 0.02, final
+
+
+def test_help_names_every_shipped_policy_task_and_family(capsys):
+    from mrchaos.learn.checkpoint import SHIPPED
+    from mrchaos.tasks.presets import PRESETS
+
+    with pytest.raises(SystemExit):
+        bench_main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    names = [*SHIPPED, *PRESETS, *(f.lower() for p in PRESETS.values() for f in p.families)]
+    missing = [n for n in names if n not in text.replace("- ", "-")]
+    assert not missing, f"mrchaos-bench --help omits {missing}"

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mrchaos.bench.lookahead import Lookahead
+from mrchaos.learn.planner import Lookahead
 from mrchaos.core.atomic import write_atomic
 from mrchaos.core.errors import MrchaosError
 from mrchaos.env.oracle import oracle_actions

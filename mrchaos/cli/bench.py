@@ -13,12 +13,21 @@ from mrchaos.cli.guard import run_command
 
 
 def main(argv: list[str] | None = None) -> int:
+    # The parser is built after the dependencies import: its help reads the registries (tasks,
+    # their families, shipped policies), so that it cannot drift from them.
+    return run_command("mrchaos-bench", lambda: _bench(_parser().parse_args(argv)))
+
+
+def _parser() -> argparse.ArgumentParser:
+    from mrchaos.learn.checkpoint import SHIPPED
+    from mrchaos.tasks.presets import PRESETS
+
     ap = argparse.ArgumentParser(prog="mrchaos-bench", description=__doc__)
-    ap.add_argument("--task", default="tangram", help="tangram (default), cutlery or soda")
-    ap.add_argument("--families", default="all", help="'all' or comma-separated: random,h-normal,h-hard,h-fiendish "
-                    "(tangram) or authored,random (cutlery, soda)")
-    ap.add_argument("--policy", action="append", help="random, oracle, mrchaos, mrchaos-wo-local, mrchaos-wo-global, "
-                    "bc, mrchaos-cutlery, mrchaos-soda, or a checkpoint / run folder (repeatable; default: mrchaos, "
+    ap.add_argument("--task", default="tangram", help=f"one of {', '.join(PRESETS)} (default: tangram)")
+    ap.add_argument("--families", default="all", help="'all' or comma-separated families of the task: " + "; ".join(
+        f"{','.join(f.lower() for f in p.families)} ({name})" for name, p in PRESETS.items()))
+    ap.add_argument("--policy", action="append", help="random, oracle, a shipped policy ("
+                    + ", ".join(SHIPPED) + "), or a checkpoint / run folder (repeatable; default: mrchaos, "
                     "or mrchaos-<task>)")
     ap.add_argument("--figures", action="append", help="interchange JSON or folder of KILOGRAM SVGs (repeatable; "
                     "default: the built-in library, or the task's authored goals)")
@@ -47,8 +56,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="read each spatial checkpoint's deterministic action as the one whose WxW neighbourhood "
                          "holds the most probability (odd; 1: the most probable action; default: the checkpoint's "
                          "own policy.mode_window)")
-    args = ap.parse_args(argv)
-    return run_command("mrchaos-bench", lambda: _bench(args))
+    return ap
 
 
 def _bench(args: argparse.Namespace) -> int:

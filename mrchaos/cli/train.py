@@ -11,7 +11,7 @@ from mrchaos.cli.guard import run_command
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrchaos-train", description="Train a tangram policy with PPO.")
+    ap = argparse.ArgumentParser(prog="mrchaos-train", description="Train a tangram policy: PPO, or supervision (algo: bc; BC, dense targets, DAgger, expert iteration).")
     ap.add_argument("config", nargs="?", help="YAML experiment (e.g. conf/full.yaml)")
     ap.add_argument("overrides", nargs="*", help="dotted overrides, e.g. optim.lr=1e-4 env.num_worlds=64")
     ap.add_argument("--resume", metavar="RUN_DIR", help="continue the run in this folder from its last checkpoint")
@@ -34,6 +34,8 @@ def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             cfg = load_config(run_dir / "config.yaml", extra)
         if not (run_dir / "checkpoints" / "last.pt").exists():
             raise CheckpointError(f"{run_dir}: no checkpoints/last.pt to resume from")
+        if cfg.algo == "bc":
+            return _supervise(cfg, run_dir, resume=True)
         trainer = Trainer(cfg, run_dir, resume=True)
     else:
         if not args.config:
@@ -45,13 +47,7 @@ def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
                 f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another name=..."
             )
         if cfg.algo == "bc":
-            from mrchaos.learn.bc import train_bc
-
-            res = train_bc(cfg, run_dir)
-            print(f"{run_dir}: supervised on {res['samples']} labelled steps ({res['what']}), final loss "
-                  f"{res['loss']:.3f}; greedy on {res['n']} Random objects: Rela {res['rela']:.3f} "
-                  f"Final {res['final']:.3f}")
-            return 0
+            return _supervise(cfg, run_dir)
         trainer = Trainer(cfg, run_dir)
     result = trainer.run()
     print(f"{run_dir}: {result['iteration']} iterations, {result['frames']} frames"
@@ -60,6 +56,16 @@ def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         ev = trainer.finish(args.eval)
         print(f"greedy on {ev['n']} Random objects: Rela {ev['rela']:.3f}  Final {ev['final']:.3f}  "
               f"IoU {ev['iou']:.3f}  strict Rela {ev['strict_rela']:.3f}")
+    return 0
+
+
+def _supervise(cfg, run_dir: Path, resume: bool = False) -> int:
+    from mrchaos.learn.bc import train_bc
+
+    res = train_bc(cfg, run_dir, resume=resume)
+    print(f"{run_dir}: supervised on {res['samples']} labelled steps ({res['what']}), final loss "
+          f"{res['loss']:.3f}; greedy on {res['n']} Random objects: Rela {res['rela']:.3f} "
+          f"Final {res['final']:.3f}")
     return 0
 
 

@@ -1,4 +1,5 @@
-"""Supervised learning from the simulator's answers: the paper's BC baseline, BC on chaos, dense targets, DAgger.
+"""Supervised learning from the simulator's answers: the paper's BC baseline, BC on chaos, dense
+targets, DAgger and expert iteration.
 
 A demonstration is a target assembled in the simulator piece by piece: every state along
 the way (silhouette plus the pieces already in place) with a label. The targets are
@@ -9,7 +10,12 @@ counterfactual coverage of all 20,808 actions (``targets: dense``, a cross-entro
 softmax(coverage / temperature), actions that land on placed pieces masked), which
 grades every action where the oracle names one. DAgger rounds (``bc.dagger_rounds``) let
 the policy assemble new chaos objects itself and label the states it reaches, so that
-its own compounding errors are learnt from. The network is the same actor as PPO's.
+its own compounding errors are learnt from. Expert-iteration rounds (``exit.rounds``, Anthony
+et al. 2017) let the lookahead planner around the policy (:mod:`mrchaos.learn.planner`, which
+reads no solution) assemble new chaos objects, and teach the policy the planner's ranking of
+its own top-k candidates at every state (:func:`ranking_loss`) beside the dense targets of the
+same states; the better policy makes the better planner for the next round. The network is the
+same actor as PPO's. Every epoch leaves a checkpoint, so a run resumes where it stopped.
 """
 
 from __future__ import annotations
@@ -34,14 +40,15 @@ from mrchaos.figures.figure import Figure
 from mrchaos.figures.formats import load_figures
 from mrchaos.figures.library import builtin_figures
 from mrchaos.figures.pieces import get_piece_set
-from mrchaos.learn.checkpoint import policy_header, save_checkpoint
+from mrchaos.learn.checkpoint import CheckpointError, checkpoint_path, load_weights, policy_header, save_checkpoint
 from mrchaos.learn.config import TrainConfig, config_to_dict
 from mrchaos.learn.evaluate import evaluate, evaluate_random, policy_actor
-from mrchaos.learn.policy import build_actor_critic
+from mrchaos.learn.planner import Lookahead
+from mrchaos.learn.policy import GridCategorical, build_actor_critic
 from mrchaos.learn.precision import autocast
 from mrchaos.tasks.chaos import generate
 
-__all__ = ["augment", "demonstrations", "supervised_loss", "train_bc"]
+__all__ = ["augment", "demonstrations", "supervised_loss", "ranking_loss", "SupervisedRun", "train_bc", "METRIC_FIELDS"]
 
 log = logging.getLogger("mrchaos.learn.bc")
 
@@ -125,84 +132,266 @@ def _targets(cfg: TrainConfig, rng: np.random.Generator, n_chaos: int, seed: int
     return poses, mirrored, f"{len(figs)} figures ({len(poses)} augmented)"
 
 
-def supervised_loss(policy, obs: torch.Tensor, labels: torch.Tensor, dense: bool, temperature: float) -> torch.Tensor:
-    """Negative log-likelihood of oracle actions, or the cross-entropy against softmax(coverage / T)."""
-    dist = policy.get_dist(TensorDict(observation=obs, batch_size=[len(obs)]))
+def supervised_loss(dist, labels: torch.Tensor, dense: bool, temperature: float) -> torch.Tensor:
+    """Per-sample negative log-likelihood of oracle actions, or cross-entropy against softmax(coverage / T)."""
     if not dense:
-        return -dist.log_prob(labels).mean()
+        return -dist.log_prob(labels)
     q = labels.flatten(1)
     logits = torch.where(q == _MASKED, -torch.inf, q.float() / 254 / temperature)
     target = torch.softmax(logits, -1)
-    return -(target * dist.logits).sum(-1).mean()
+    return -(target * dist.logits).sum(-1)
 
 
-def train_bc(cfg: TrainConfig, run_dir: Path) -> dict:
-    """Train the configured network by supervision (oracle actions or dense targets, optionally
-    with DAgger rounds); writes a checkpoint like PPO's."""
-    run_dir = Path(run_dir)
-    (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
-    write_atomic(run_dir / "config.yaml", yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-    torch.set_num_threads(cfg.threads)
-    torch.manual_seed(cfg.seed)
-    bc = cfg.bc
-    dense = bc.targets == "dense"
-    rng = np.random.default_rng(cfg.seed)
-    targets, faces, what = _targets(cfg, rng, bc.objects, bc.seed)
-    env = TangramEnv(dataclasses.replace(cfg.env_config(), num_worlds=min(128, len(targets)),
-                                         task=cfg.task.given_targets()), seed=cfg.seed)
-    t0 = time.perf_counter()
-    obs, labels = demonstrations(env, targets, dense=dense, overlap_limit=bc.overlap_limit, mirrored=faces)
-    log.info("%d demonstration steps from %s in %.0f s", len(obs), what, time.perf_counter() - t0)
-    device = torch.device(cfg.device)
-    ac = build_actor_critic(cfg.policy, env.grid, env.view, env.action_spec).to(device)
-    policy = ac.get_policy_operator()
-    opt = torch.optim.Adam(ac.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
-    rows: list[dict] = []
-    # The budget that ``optim.lr_final`` anneals over is every planned epoch, DAgger rounds included.
-    planned = bc.epochs + bc.dagger_rounds * bc.dagger_epochs
+def ranking_loss(dist: GridCategorical, candidates: torch.Tensor, iou: torch.Tensor, temperature: float) -> torch.Tensor:
+    """Per-sample listwise loss: the cross-entropy between softmax(IoU / T) over a state's planner
+    candidates (B, k, 3) and the softmax of the policy's mode scores at the same candidates, the
+    scores whose argmax is the deterministic action (windowed under a mode window)."""
+    t, y, x = dist.grid_shape
+    flat = candidates[..., 2] * (x * y) + candidates[..., 1] * x + candidates[..., 0]
+    scores = dist.mode_scores.gather(-1, flat)
+    target = torch.softmax(iou / temperature, -1)
+    return -(target * torch.log_softmax(scores, -1)).sum(-1)
 
-    def fit(epochs: int, round_: int) -> None:
-        n = len(obs)
-        for _ in range(epochs):
-            perm = torch.randperm(n)
-            total, count = 0.0, 0
-            for i in range(0, n, bc.minibatch_size):
-                idx = perm[i : i + bc.minibatch_size]
-                for group in opt.param_groups:
-                    group["lr"] = cfg.optim.learning_rate((len(rows) + i / n) / planned)
-                # The labelled data stays on the CPU (it can be large); minibatches go to the device.
-                with autocast(cfg.precision, device):
-                    loss = supervised_loss(policy, obs[idx].to(device), labels[idx].to(device), dense,
-                                           bc.temperature)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(ac.parameters(), cfg.optim.max_grad_norm)
-                opt.step()
-                total += loss.item() * len(idx)
-                count += len(idx)
-            rows.append({"epoch": len(rows) + 1, "round": round_, "samples": n, "loss": total / count,
-                         "lr": opt.param_groups[0]["lr"], "minutes": (time.perf_counter() - t0) / 60})
-            log.info("bc epoch %d (round %d, %d samples): loss %.4f", len(rows), round_, n, total / count)
 
-    fit(bc.epochs, 0)
-    greedy = policy_actor(policy)
-    for r in range(1, bc.dagger_rounds + 1):
-        new, new_faces, what_r = _targets(cfg, rng, bc.dagger_objects, bc.seed + r)
-        o, lb = demonstrations(env, new, actor=greedy, dense=dense, overlap_limit=bc.overlap_limit,
-                               mirrored=new_faces)
-        obs, labels = torch.cat([obs, o]), torch.cat([labels, lb])
-        log.info("DAgger round %d: %d states of the policy's own assemblies of %s", r, len(o), what_r)
-        fit(bc.dagger_epochs, r)
-    state = {
-        **policy_header(env, config_to_dict(cfg.policy)), "config": config_to_dict(cfg), "model": ac.state_dict(),
-        "curriculum": {"stage": 0, "switched_at": -1}, "iteration": len(rows), "frames": len(obs),
-        "episodes": len(targets) + bc.dagger_rounds * bc.dagger_objects, "minutes": (time.perf_counter() - t0) / 60,
-    }
-    save_checkpoint(run_dir / "checkpoints" / "last.pt", state)
-    fields = ["epoch", "round", "samples", "loss", "lr", "minutes"]
-    write_atomic(run_dir / "metrics.csv", ",".join(fields) + "\n"
-                 + "".join(",".join(f"{r[k]:.6f}" if isinstance(r[k], float) else str(r[k]) for k in fields) + "\n"
-                           for r in rows))
-    ev = evaluate_random(policy, cfg.env_config(), n=100)
-    write_atomic(run_dir / "eval.json", json.dumps(ev, indent=1) + "\n")
-    return {"samples": len(obs), "what": what, "loss": rows[-1]["loss"] if rows else float("nan"), **ev}
+#: The pieces of a labelled shard; ``candidates`` and ``iou`` hold the planner's judgement (NaN IoU
+#: where a state has none: demonstrations and DAgger).
+SHARD_KEYS = ("observation", "label", "candidates", "iou")
+
+
+class SupervisedRun:
+    """A supervised run as rounds of labelled data, each followed by passes over all data so far:
+    round 0 the demonstrations, then DAgger rounds (the policy's own assemblies, labelled by the
+    oracle or dense targets), then expert-iteration rounds (the planner's assemblies, labelled with
+    its ranking of the policy's candidates and the dense or oracle targets of the same states).
+
+    Crash safety: each round's data is written to ``data/round_R.pt`` before it is learnt from,
+    and after every epoch the checkpoint ``checkpoints/last.pt`` (weights, optimiser, RNG, the
+    round and epoch) and ``metrics.csv`` are rewritten atomically, so ``resume=True`` continues
+    after the last finished epoch as if the run had not stopped. The policy at the end of round
+    R is kept as ``checkpoints/roundR.pt``.
+    """
+
+    def __init__(self, cfg: TrainConfig, run_dir: Path, resume: bool = False) -> None:
+        self.cfg, self.run_dir = cfg, Path(run_dir)
+        self.ckpt = self.run_dir / "checkpoints" / "last.pt"
+        (self.run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+        if not resume:
+            write_atomic(self.run_dir / "config.yaml", yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+        torch.set_num_threads(cfg.threads)
+        torch.manual_seed(cfg.seed)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.dense = cfg.bc.targets == "dense"
+        self.device = torch.device(cfg.device)
+        bc, ex = cfg.bc, cfg.exit
+        #: (kind, epochs) of every round, in order.
+        self.plan = ([("demo", bc.epochs)] + [("dagger", bc.dagger_epochs)] * bc.dagger_rounds
+                     + [("exit", ex.epochs)] * ex.rounds)
+        if ex.rounds and cfg.env.num_worlds < ex.k:
+            raise ValueError(f"exit.k={ex.k} candidates need env.num_worlds >= {ex.k}, got {cfg.env.num_worlds}")
+        self.env = TangramEnv(dataclasses.replace(cfg.env_config(), task=cfg.task.given_targets()), seed=cfg.seed)
+        self.ac = build_actor_critic(cfg.policy, self.env.grid, self.env.view, self.env.action_spec).to(self.device)
+        self.policy = self.ac.get_policy_operator()
+        self.opt = torch.optim.Adam(self.ac.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
+        self.rows: list[dict] = []
+        self.round, self.epoch, self.episodes, self.minutes = 0, 0, 0, 0.0
+        self.shards: list[dict[str, torch.Tensor]] = []
+        if resume:
+            self._restore()
+        elif cfg.init_from:
+            path = checkpoint_path(cfg.init_from)
+            load_weights(self.ac, path, self.env)
+            log.info("initialised the policy from %s", path)
+
+    # ------------------------------------------------------------------ data
+    def _shard_path(self, r: int) -> Path:
+        return self.run_dir / "data" / f"round_{r}.pt"
+
+    def _label_round(self, r: int) -> tuple[dict[str, torch.Tensor], str]:
+        """Round ``r``'s labelled states and a description."""
+        cfg, kind = self.cfg, self.plan[r][0]
+        bc = cfg.bc
+        if kind == "demo":
+            if self.plan[r][1] == 0:  # no demonstrations (a run that starts from init_from)
+                return self._shard(torch.zeros(0, 2, self.env.view.size, self.env.view.size, dtype=torch.uint8),
+                                   self._empty_labels()), "no demonstrations"
+            targets, faces, what = _targets(cfg, self.rng, bc.objects, bc.seed)
+            obs, labels = demonstrations(self.env, targets, dense=self.dense, overlap_limit=bc.overlap_limit,
+                                         mirrored=faces)
+            self.episodes += len(targets)
+            return self._shard(obs, labels), what
+        if kind == "dagger":
+            targets, faces, what = _targets(cfg, self.rng, bc.dagger_objects, bc.seed + r)
+            obs, labels = demonstrations(self.env, targets, actor=policy_actor(self.policy), dense=self.dense,
+                                         overlap_limit=bc.overlap_limit, mirrored=faces)
+            self.episodes += len(targets)
+            return self._shard(obs, labels), f"the policy's own assemblies of {what}"
+        ex = cfg.exit
+        targets, faces, what = _targets(cfg, self.rng, ex.objects, bc.seed + 1000 + r)
+        planner = Lookahead(self.policy, ex.k)
+        self.ac.eval()
+        lab, chosen = planner.label(self.env, targets, faces,
+                                    on_state=lambda e: _dense_label(e, bc.overlap_limit) if self.dense else oracle_actions(e))
+        greedy = evaluate(self.env, targets, policy_actor(self.policy), mirrored=faces)
+        planned = evaluate(self.env, targets, planner.replay(chosen, self.env), mirrored=faces)
+        self.ac.train()
+        self.episodes += len(targets)
+        agree = float((lab.best == 0).float().mean())
+        self.round_metrics = {"greedy_rela": float(greedy.rela.mean()), "planner_rela": float(planned.rela.mean()),
+                              "agreement": agree}
+        log.info("expert-iteration round %d: on its %d objects the greedy policy scores Rela %.3f, the planner "
+                 "around it %.3f; the policy's mode is the planner's choice on %.1f %% of %d states",
+                 r, len(targets), greedy.rela.mean(), planned.rela.mean(), 100 * agree, len(lab))
+        return self._shard(lab.observation, lab.extra, lab.candidates, lab.iou), f"the planner's assemblies of {what}"
+
+    def _empty_labels(self) -> torch.Tensor:
+        g = self.env.grid
+        return torch.zeros((0, g.norient, g.ny, g.nx) if self.dense else (0, 3),
+                           dtype=torch.uint8 if self.dense else torch.int64)
+
+    def _shard(self, obs: torch.Tensor, labels: torch.Tensor, candidates: torch.Tensor | None = None,
+               iou: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        k = self.cfg.exit.k
+        if candidates is None:
+            candidates = torch.zeros(len(obs), k, 3, dtype=torch.int64)
+            iou = torch.full((len(obs), k), float("nan"))
+        return {"observation": obs, "label": labels, "candidates": candidates, "iou": iou}
+
+    def _load_or_label(self, r: int) -> None:
+        """Round ``r``'s data: from its shard if an earlier attempt wrote it, else labelled now."""
+        path = self._shard_path(r)
+        self.round_metrics: dict[str, float] = {}
+        if path.exists():
+            try:
+                shard = torch.load(path, weights_only=True)
+            except Exception as e:  # torch raises many types for truncated or foreign files
+                raise CheckpointError(f"{path}: not a readable data shard ({type(e).__name__}: {str(e)[:160]})") from None
+            if not isinstance(shard, dict) or set(shard) != set(SHARD_KEYS):
+                raise CheckpointError(f"{path}: not a data shard of a supervised run (keys {SHARD_KEYS})")
+            log.info("round %d: %d labelled states from %s", r, len(shard["observation"]), path)
+        else:
+            t0 = time.perf_counter()
+            shard, what = self._label_round(r)
+            write_atomic(path, lambda f: torch.save(shard, f))
+            log.info("round %d: %d labelled states from %s in %.0f s", r, len(shard["observation"]), what,
+                     time.perf_counter() - t0)
+        self.shards.append(shard)
+
+    # ------------------------------------------------------------------ state
+    def _state(self) -> dict:
+        cfg = self.cfg
+        return {
+            **policy_header(self.env, config_to_dict(cfg.policy)), "config": config_to_dict(cfg),
+            "model": self.ac.state_dict(), "optim": self.opt.state_dict(),
+            "curriculum": {"stage": 0, "switched_at": -1}, "iteration": len(self.rows),
+            "frames": sum(len(s["observation"]) for s in self.shards), "episodes": self.episodes,
+            "minutes": self.minutes, "rng": {"torch": torch.get_rng_state(), "numpy": self.rng.bit_generator.state},
+            "supervision": {"round": self.round, "epoch": self.epoch, "rows": self.rows},
+        }
+
+    def _save(self) -> None:
+        save_checkpoint(self.ckpt, self._state())
+        fields = METRIC_FIELDS
+        write_atomic(self.run_dir / "metrics.csv", ",".join(fields) + "\n" + "".join(
+            ",".join(f"{r[k]:.6f}" if isinstance(r.get(k), float) else str(r.get(k, "")) for k in fields) + "\n"
+            for r in self.rows))
+
+    def _restore(self) -> None:
+        st = load_weights(self.ac, self.ckpt, self.env)
+        sup = st.get("supervision")
+        if not isinstance(sup, dict) or "optim" not in st:
+            raise CheckpointError(f"{self.ckpt}: not a checkpoint of a supervised run (no round and epoch)")
+        try:
+            self.opt.load_state_dict(st["optim"])
+        except (RuntimeError, KeyError, ValueError) as e:
+            raise CheckpointError(f"{self.ckpt}: optimiser state does not fit this policy ({str(e)[:200]})") from None
+        self.round, self.epoch, self.rows = sup["round"], sup["epoch"], list(sup["rows"])
+        self.episodes, self.minutes = st["episodes"], st["minutes"]
+        torch.set_rng_state(st["rng"]["torch"])
+        self.rng.bit_generator.state = st["rng"]["numpy"]
+        for r in range(self.round + 1):
+            if not self._shard_path(r).exists():
+                raise CheckpointError(f"{self._shard_path(r)}: the data of round {r} is missing; the run "
+                                      "cannot resume without it")
+            self._load_or_label(r)
+        log.info("resumed %s at round %d, epoch %d", self.ckpt, self.round, self.epoch)
+
+    # ------------------------------------------------------------------ learning
+    def _fit_epoch(self, data: dict[str, torch.Tensor], planned: int) -> dict:
+        cfg, bc = self.cfg, self.cfg.bc
+        n = len(data["observation"])
+        perm = torch.randperm(n)
+        sums = {"loss": 0.0, "sup": 0.0, "rank": 0.0}
+        ranked = 0
+        for i in range(0, n, bc.minibatch_size):
+            idx = perm[i : i + bc.minibatch_size]
+            for group in self.opt.param_groups:
+                group["lr"] = cfg.optim.learning_rate((len(self.rows) + i / n) / planned)
+            # The labelled data stays on the CPU (it can be large); minibatches go to the device.
+            obs = data["observation"][idx].to(self.device)
+            iou = data["iou"][idx].to(self.device)
+            with autocast(cfg.precision, self.device):
+                dist = self.policy.get_dist(TensorDict(observation=obs, batch_size=[len(idx)]))
+                sup = supervised_loss(dist, data["label"][idx].to(self.device), self.dense, bc.temperature).mean()
+                has = ~iou[:, 0].isnan()
+                rank = torch.zeros((), device=self.device)
+                if has.any():
+                    rank = ranking_loss(dist, data["candidates"][idx].to(self.device)[has], iou[has],
+                                        cfg.exit.temperature).sum() / len(idx)
+                loss = sup + cfg.exit.weight * rank
+            self.opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(self.ac.parameters(), cfg.optim.max_grad_norm)
+            self.opt.step()
+            m = len(idx)
+            sums["loss"] += loss.item() * m
+            sums["sup"] += sup.item() * m
+            sums["rank"] += rank.item() * m
+            ranked += int(has.sum())
+        return {k: v / max(n, 1) for k, v in sums.items()} | {"samples": n, "ranked": ranked}
+
+    def run(self) -> dict:
+        """Label and fit every round from where the run stands; returns a summary."""
+        t0 = time.perf_counter() - self.minutes * 60
+        planned = max(1, sum(e for _, e in self.plan))
+        if not self.shards:
+            self._load_or_label(0)
+        while True:
+            kind, epochs = self.plan[self.round]
+            data = {k: torch.cat([s[k] for s in self.shards]) for k in SHARD_KEYS}
+            while self.epoch < epochs:
+                res = self._fit_epoch(data, planned)
+                self.epoch += 1
+                self.minutes = (time.perf_counter() - t0) / 60
+                row = {"epoch": len(self.rows) + 1, "round": self.round, "kind": kind, **res,
+                       "lr": self.opt.param_groups[0]["lr"], "minutes": self.minutes,
+                       **(self.round_metrics if self.epoch == 1 else {})}
+                self.rows.append(row)
+                log.info("epoch %d (round %d, %s, %d samples): loss %.4f (supervised %.4f, ranking %.4f)",
+                         len(self.rows), self.round, kind, res["samples"], res["loss"], res["sup"], res["rank"])
+                self._save()
+            del data
+            # Each round's policy stays loadable: the next round's planner is built around it.
+            save_checkpoint(self.ckpt.with_name(f"round{self.round}.pt"), self._state())
+            if self.round + 1 >= len(self.plan):
+                break
+            self.round, self.epoch = self.round + 1, 0
+            self._load_or_label(self.round)
+            self._save()  # the round's data is written: a resume starts its epochs
+        ev = evaluate_random(self.policy, self.cfg.env_config(), n=100)
+        write_atomic(self.run_dir / "eval.json", json.dumps(ev, indent=1) + "\n")
+        samples = sum(len(s["observation"]) for s in self.shards)
+        return {"samples": samples, "what": f"{len(self.plan)} rounds", "loss": self.rows[-1]["loss"] if self.rows
+                else float("nan"), **ev}
+
+
+#: Columns of a supervised run's ``metrics.csv``: one row per epoch; the planner's figures
+#: (greedy and planner Rela on the round's objects, how often the policy's mode is the planner's
+#: choice) on the first epoch of an expert-iteration round.
+METRIC_FIELDS = ["epoch", "round", "kind", "samples", "ranked", "loss", "sup", "rank", "lr", "minutes",
+                 "greedy_rela", "planner_rela", "agreement"]
+
+
+def train_bc(cfg: TrainConfig, run_dir: Path, resume: bool = False) -> dict:
+    """Train the configured network by supervision (see :class:`SupervisedRun`); writes a
+    checkpoint like PPO's after every epoch."""
+    return SupervisedRun(cfg, run_dir, resume=resume).run()

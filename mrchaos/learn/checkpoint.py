@@ -21,6 +21,7 @@ from mrchaos.core.errors import MrchaosError, first_line
 from mrchaos.learn.config import upgrade_config_dict
 
 __all__ = ["CheckpointError", "SHIPPED", "shipped_path", "checkpoint_path", "save_checkpoint", "load_checkpoint", "policy_header", "check_header", "policy_env",
+           "load_weights",
            "POLICY_ENV_GROUPS", "FORMAT"]
 
 #: Learnt policies shipped with the package: name -> (file, label).
@@ -128,3 +129,16 @@ def policy_env(state: dict[str, Any]) -> dict[str, Any]:
     """The env groups of :data:`POLICY_ENV_GROUPS` the checkpoint was trained with (nested, current keys)."""
     env = upgrade_config_dict(state.get("config", {})).get("env", {})
     return {k: env[k] for k in POLICY_ENV_GROUPS if k in env}
+
+
+def load_weights(module: torch.nn.Module, path: str | Path, env) -> dict[str, Any]:
+    """Load a checkpoint that fits ``env`` (:func:`check_header`) and its weights into ``module``
+    (an actor-critic); returns the checkpoint. Weights of another network config raise
+    :class:`CheckpointError`."""
+    st = load_checkpoint(path)
+    check_header(st, path, env)
+    try:
+        module.load_state_dict(st["model"])
+    except (RuntimeError, KeyError, ValueError) as e:
+        raise CheckpointError(f"{path}: weights do not fit this policy config ({str(e)[:200]})") from None
+    return st

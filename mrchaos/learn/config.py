@@ -36,6 +36,7 @@ __all__ = [
     "LoggerConfig",
     "CheckpointConfig",
     "BCConfig",
+    "ExitConfig",
     "TrainConfig",
     "load_config",
     "config_from_dict",
@@ -228,8 +229,43 @@ class BCConfig:
 
 
 @dataclass
+class ExitConfig:
+    """Expert iteration: rounds in which the lookahead planner around the current policy
+    assembles new chaos objects and the policy learns the planner's ranking of its candidates
+    (:mod:`mrchaos.learn.planner`; the planner reads no solution). They follow the supervised
+    rounds of ``bc`` (``bc.epochs: 0`` with ``init_from`` starts from another policy instead).
+
+    Attributes:
+        rounds: planner rounds (0 = none).
+        objects: chaos objects the planner assembles per round (seeds ``bc.seed + 1000 + round``).
+        k: candidates per step, the policy's own top-k (separate peaks under a mode window).
+        temperature: the target over a state's candidates is softmax(IoU / temperature) of
+            their completions' silhouette IoUs.
+        weight: the ranking loss's weight beside the dense (or oracle) loss of the same states.
+        epochs: passes over the aggregated data after each round.
+    """
+
+    rounds: int = 0
+    objects: int = 1000
+    k: int = 5
+    temperature: float = 0.01
+    weight: float = 1.0
+    epochs: int = 2
+
+    def __post_init__(self) -> None:
+        if self.rounds < 0 or self.objects < 1 or self.epochs < 0:
+            raise ValueError(f"exit.rounds and exit.epochs must be >= 0 and exit.objects >= 1, got "
+                             f"{self.rounds}, {self.epochs} and {self.objects}")
+        if self.k < 2:
+            raise ValueError(f"exit.k must be >= 2 (a ranking needs two candidates), got {self.k}")
+        if self.temperature <= 0 or self.weight < 0:
+            raise ValueError(f"exit.temperature must be > 0 and exit.weight >= 0, got {self.temperature} and {self.weight}")
+
+
+@dataclass
 class TrainConfig:
-    """A whole experiment: ``algo`` "ppo" (the method) or "bc" (supervision: BC, dense targets, DAgger).
+    """A whole experiment: ``algo`` "ppo" (the method) or "bc" (supervision: BC, dense targets, DAgger,
+    expert iteration).
 
     ``precision`` "bf16" runs the network under bfloat16 autocast (see :mod:`mrchaos.learn.precision`);
     ``init_from`` starts the network from a checkpoint's weights (a shipped name, a run or a
@@ -255,6 +291,7 @@ class TrainConfig:
     logger: LoggerConfig = field(default_factory=LoggerConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     bc: BCConfig = field(default_factory=BCConfig)
+    exit: ExitConfig = field(default_factory=ExitConfig)
 
     def __post_init__(self) -> None:
         if self.algo not in ("ppo", "bc"):
@@ -264,6 +301,10 @@ class TrainConfig:
         if self.algo == "ppo" and self.optim.lr_final is not None and self.collector.total_frames <= 0 and self.collector.max_minutes <= 0:
             raise ValueError("optim.lr_final anneals over the run's budget: set collector.total_frames or "
                              "collector.max_minutes")
+        if self.exit.rounds and self.algo != "bc":
+            raise ValueError("exit.rounds are rounds of supervision: set algo: bc")
+        if self.exit.rounds and self.policy.name != "spatial":
+            raise ValueError("exit.rounds need the spatial policy (the planner ranks its grid actions)")
 
     def env_config(self) -> EnvConfig:
         """The env config with the task group folded in."""

@@ -29,9 +29,8 @@ from mrchaos.env.rewards import REWARD_TERMS
 from mrchaos.env.tangram import TangramEnv
 from mrchaos.learn.checkpoint import (
     CheckpointError,
-    check_header,
     checkpoint_path,
-    load_checkpoint,
+    load_weights,
     policy_header,
     save_checkpoint,
 )
@@ -160,13 +159,7 @@ class Trainer:
 
     def _load_weights(self, path: Path) -> dict[str, Any]:
         """A checkpoint that fits this env, its weights loaded into the actor-critic."""
-        st = load_checkpoint(path)
-        check_header(st, path, self.base)
-        try:
-            self.actor_critic.load_state_dict(st["model"])
-        except (RuntimeError, KeyError, ValueError) as e:
-            raise CheckpointError(f"{path}: weights do not fit this policy config ({str(e)[:200]})") from None
-        return st
+        return load_weights(self.actor_critic, path, self.base)
 
     def _restore(self, path: Path) -> None:
         st = self._load_weights(path)

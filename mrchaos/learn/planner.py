@@ -1,0 +1,162 @@
+"""The lookahead planner around a spatial policy: each placement chosen among the policy's top-k
+actions by where greedy completions in the simulator end, scored on the silhouette alone (no
+solution is read). It plays at test time (``mrchaos-bench --lookahead K``) and labels states for
+training (expert iteration: :mod:`mrchaos.learn.bc` distils its ranking into the policy).
+
+For every step t of an episode, k copies of the world replay the placements chosen so far, each
+copy places the piece at one of the policy's k best actions (``GridCategorical.top_modes``: with a
+mode window, k separate peaks), and the policy then completes the assembly greedily. The candidate
+whose completion reaches the highest IoU of the occupied area with the silhouette wins (ties go to
+the policy's order, so k = 1 is the greedy policy). IoU is observable: the silhouette is the prompt
+and the occupied area is the view. The planner uses the simulator as its model, so it is a planner
+around the policy, not the policy alone, and the bench labels it so. The cost is about
+k x pieces² env steps per episode instead of pieces; the env's worlds hold k copies of
+``worlds // k`` targets at once.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+from mrchaos.env.tangram import TangramEnv
+from mrchaos.learn.evaluate import Actor
+from mrchaos.learn.policy import GridCategorical, unravel_actions
+
+__all__ = ["Lookahead", "PlannerLabels"]
+
+
+@dataclass
+class PlannerLabels:
+    """What the planner saw and judged at every planned state, one row per (target, step).
+
+    Attributes:
+        observation: (S, 2, H, W) uint8, the state before the step (as the policy saw it).
+        candidates: (S, k, 3) int64 grid actions (x, y, orientation), in the policy's order.
+        iou: (S, k) float32 silhouette IoU at the end of each candidate's greedy completion.
+        step: (S,) int64 the step (piece index) of the state.
+        extra: (S, ...) what ``on_state`` returned for the state (e.g. dense targets), or None.
+    """
+
+    observation: torch.Tensor
+    candidates: torch.Tensor
+    iou: torch.Tensor
+    step: torch.Tensor
+    extra: torch.Tensor | None = None
+
+    @property
+    def best(self) -> torch.Tensor:
+        """(S,) index of the candidate the planner chose: the highest IoU, the first of ties."""
+        return self.iou.argmax(1)
+
+    def __len__(self) -> int:
+        return len(self.step)
+
+
+class Lookahead:
+    """Plans whole episodes for a spatial policy (a ``GridCategorical`` over the grid's actions)."""
+
+    def __init__(self, policy, k: int) -> None:
+        if k < 1:
+            raise ValueError(f"lookahead k must be >= 1, got {k}")
+        self.policy, self.k = policy, k
+
+    def _dist(self, td: TensorDict) -> GridCategorical:
+        weights = next(iter(self.policy.parameters()), None)
+        device = weights.device if weights is not None else torch.device("cpu")
+        with torch.no_grad():
+            dist = self.policy.get_dist(td.select("observation").clone().to(device))
+        if not isinstance(dist, GridCategorical):
+            raise ValueError("lookahead needs a spatial policy (one score per grid action)")
+        return dist
+
+    def plan(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None = None) -> np.ndarray:
+        """The chosen (x, y, orientation) index of every step of every target: (n, pieces, 3)."""
+        return self._run(env, targets, mirrored)[0]
+
+    def label(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None = None,
+              on_state: Callable[[TangramEnv], torch.Tensor] | None = None) -> tuple[PlannerLabels, np.ndarray]:
+        """Plan ``targets`` and keep, for every step, the state, the k candidates and their
+        completions' IoUs; also the plan (as :meth:`plan`). ``on_state(env)`` is called at each
+        planned state (every world of the env stands in it, k copies per target) and its rows of
+        the targets' first copies are kept as ``extra``."""
+        chosen, labels = self._run(env, targets, mirrored, record=True, on_state=on_state)
+        assert labels is not None
+        return labels, chosen
+
+    def _run(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None, record: bool = False,
+             on_state: Callable[[TangramEnv], torch.Tensor] | None = None) -> tuple[np.ndarray, PlannerLabels | None]:
+        n, nw, p, k = len(targets), env.batch_size[0], env.num_pieces, self.k
+        if nw < k:
+            raise ValueError(f"lookahead k={k} needs at least k worlds, the env has {nw}")
+        per = nw // k
+        nx, ny, _ = env.grid.nvec
+        chosen = np.zeros((n, p, 3), dtype=np.int64)
+        rec: dict[str, list[torch.Tensor]] = {"observation": [], "candidates": [], "iou": [], "step": [], "extra": []}
+        for start in range(0, n, per):
+            m = min(per, n - start)
+            # World i * k + c tries candidate c for target i; the rest repeat the last copy.
+            rows = np.minimum(np.arange(nw) // k, m - 1) + start
+            first = torch.arange(m) * k  # each target's first copy
+            faces = None if mirrored is None else mirrored[rows]
+            cand = torch.arange(nw) % k
+            for t in range(p):
+                td = env.reset_to(targets[rows], faces)
+                for s in range(p):
+                    if s < t:
+                        action = torch.as_tensor(chosen[rows, s])
+                    else:
+                        dist = self._dist(td)
+                        if s == t:
+                            # Every copy of a target sees the same state, so the same top k; the
+                            # policy's own order (its mode first), so that k = 1 is the greedy policy.
+                            top = dist.top_modes(k).cpu()
+                            action = unravel_actions(top.gather(1, cand[:, None]).squeeze(1), nx, ny)
+                            tried = action
+                            if record:
+                                rec["observation"].append(td["observation"][first].clone())
+                                rec["candidates"].append(unravel_actions(top[first], nx, ny))
+                                rec["step"].append(torch.full((m,), t, dtype=torch.int64))
+                                if on_state is not None:
+                                    rec["extra"].append(on_state(env)[first])
+                        else:
+                            action = dist.mode.cpu()
+                    nxt = env.step(td.set("action", action.to(env.device)))["next"]
+                    td = TensorDict(observation=nxt["observation"], batch_size=env.batch_size)
+                iou = nxt["info", "iou"][: m * k, 0].reshape(m, k).cpu()
+                best = iou.argmax(1)  # the first of equal IoUs: the policy's order
+                picks = torch.arange(m) * k + best
+                chosen[start : start + m, t] = tried[picks].numpy()
+                if record:
+                    rec["iou"].append(iou.float())
+        if not record:
+            return chosen, None
+        # Rows in (chunk, step, target) order; each tensor's rows line up.
+        cat = {key: torch.cat(v) for key, v in rec.items() if v}
+        return chosen, PlannerLabels(observation=cat["observation"], candidates=cat["candidates"], iou=cat["iou"],
+                                     step=cat["step"], extra=cat.get("extra"))
+
+    def actor(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None = None) -> Actor:
+        """An actor that plays the planned episodes of ``targets`` through
+        :func:`mrchaos.learn.evaluate.evaluate` (which takes them in chunks of the env's worlds)."""
+        return self.replay(self.plan(env, targets, mirrored), env)
+
+    @staticmethod
+    def replay(chosen: np.ndarray, env: TangramEnv) -> Actor:
+        """An actor that plays a plan (n, pieces, 3) through :func:`mrchaos.learn.evaluate.evaluate`
+        on ``env``."""
+        n, nw, p = len(chosen), env.batch_size[0], env.num_pieces
+        calls = itertools.count()  # evaluate asks step by step, chunk by chunk
+
+        def act(e: TangramEnv, td: TensorDict) -> torch.Tensor:
+            c = next(calls)
+            start, t = (c // p) * nw, c % p
+            rows = np.minimum(np.arange(start, start + nw), n - 1)
+            return torch.as_tensor(chosen[rows, t]).to(e.device)
+
+        return act
