@@ -65,6 +65,10 @@ def test_footprints_on_placed_pieces_are_reported_as_overlap():
     assert (overlap[ar, a[:, 2], a[:, 1], a[:, 0]] > 0.3).all()
     assert (cov.flatten(1).max(1).values > 0.8).all()  # its own slot is still there to cover
     assert (overlap >= 0).all() and (overlap <= 1).all() and (cov >= 0).all() and (cov <= 1).all()
+    # Some worlds only, in the order asked: their rows of the whole batch's answer.
+    rows = np.array([3, 1])
+    cov_r, overlap_r = env.counterfactual(rows)
+    assert torch.equal(cov_r, cov[rows]) and torch.equal(overlap_r, overlap[rows])
 
 
 def test_dense_targets_with_the_flip_grade_both_faces_like_the_env_reward():

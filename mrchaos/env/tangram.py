@@ -387,15 +387,17 @@ class TangramEnv(EnvBase):
         rows = np.arange(self.cfg.num_worlds)
         return OracleTargets(piece, self._target[rows, piece].copy(), self._mirrored[rows, piece].copy())
 
-    def counterfactual(self) -> tuple[torch.Tensor, torch.Tensor]:
+    def counterfactual(self, rows: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """What placing every world's next piece at each grid action would earn, if it touched
         nothing, and how much of that footprint would lie on placed pieces: (N, T, Y, X) coverage
         and overlap in [0, 1], T = ``grid.norient`` (see :mod:`mrchaos.env.dense`; with the flip, the
-        turned-over orientations follow the face-up ones). Privileged, like :meth:`oracle_targets`."""
+        turned-over orientations follow the face-up ones). ``rows`` asks for those worlds only
+        (their rows, in that order). Privileged, like :meth:`oracle_targets`."""
         if self._counterfactual is None:
             self._counterfactual = CounterfactualGrid(self.piece_set, self.grid)
-        return self._counterfactual.coverage(self._upcoming(), self._target, self._worlds.footprint,
-                                             self._worlds.placed, self._twins, self._mirrored)
+        r = np.arange(self.cfg.num_worlds) if rows is None else np.asarray(rows)
+        return self._counterfactual.coverage(self._upcoming()[r], self._target[r], self._worlds.footprint[r],
+                                             self._worlds.placed[r], self._twins, self._mirrored[r])
 
     @property
     def worlds(self) -> Worlds:

@@ -80,9 +80,10 @@ def augment(figures: list[Figure], rotations: int, shifts: int, max_shift: float
 _MASKED = 255
 
 
-def _dense_label(env: TangramEnv, overlap_limit: float) -> torch.Tensor:
-    """(N, T, Y, X) uint8 counterfactual coverage of every action, 255 where the footprint overlaps."""
-    cov, overlap = env.counterfactual()
+def _dense_label(env: TangramEnv, overlap_limit: float, rows: np.ndarray | None = None) -> torch.Tensor:
+    """(N, T, Y, X) uint8 counterfactual coverage of every action (of worlds ``rows``, default
+    all), 255 where the footprint overlaps."""
+    cov, overlap = env.counterfactual(rows)
     q = (cov * 254).round().to(torch.uint8)
     q[overlap > overlap_limit] = _MASKED
     return q
@@ -229,8 +230,7 @@ class SupervisedRun:
         targets, faces, what = _targets(cfg, self.rng, ex.objects, bc.seed + 1000 + r)
         planner = Lookahead(self.policy, ex.k)
         self.ac.eval()
-        lab, chosen = planner.label(self.env, targets, faces,
-                                    on_state=lambda e: _dense_label(e, bc.overlap_limit) if self.dense else oracle_actions(e))
+        lab, chosen = planner.label(self.env, targets, faces, on_state=self._state_label)
         greedy = evaluate(self.env, targets, policy_actor(self.policy), mirrored=faces)
         planned = evaluate(self.env, targets, planner.replay(chosen, self.env), mirrored=faces)
         self.ac.train()
@@ -242,6 +242,12 @@ class SupervisedRun:
                  "around it %.3f; the policy's mode is the planner's choice on %.1f %% of %d states",
                  r, len(targets), greedy.rela.mean(), planned.rela.mean(), 100 * agree, len(lab))
         return self._shard(lab.observation, lab.extra, lab.candidates, lab.iou), f"the planner's assemblies of {what}"
+
+    def _state_label(self, env: TangramEnv, rows: np.ndarray) -> torch.Tensor:
+        """The dense or oracle label of worlds ``rows`` in their current state."""
+        if self.dense:
+            return _dense_label(env, self.cfg.bc.overlap_limit, rows)
+        return oracle_actions(env)[rows]
 
     def _empty_labels(self) -> torch.Tensor:
         g = self.env.grid

@@ -80,17 +80,19 @@ class Lookahead:
         return self._run(env, targets, mirrored)[0]
 
     def label(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None = None,
-              on_state: Callable[[TangramEnv], torch.Tensor] | None = None) -> tuple[PlannerLabels, np.ndarray]:
+              on_state: Callable[[TangramEnv, np.ndarray], torch.Tensor] | None = None,
+              ) -> tuple[PlannerLabels, np.ndarray]:
         """Plan ``targets`` and keep, for every step, the state, the k candidates and their
-        completions' IoUs; also the plan (as :meth:`plan`). ``on_state(env)`` is called at each
-        planned state (every world of the env stands in it, k copies per target) and its rows of
-        the targets' first copies are kept as ``extra``."""
+        completions' IoUs; also the plan (as :meth:`plan`). ``on_state(env, rows)`` is called at
+        each planned state (k copies of each target stand in it) with the worlds of the targets'
+        first copies, and what it returns for them (one row each) is kept as ``extra``."""
         chosen, labels = self._run(env, targets, mirrored, record=True, on_state=on_state)
         assert labels is not None
         return labels, chosen
 
     def _run(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None, record: bool = False,
-             on_state: Callable[[TangramEnv], torch.Tensor] | None = None) -> tuple[np.ndarray, PlannerLabels | None]:
+             on_state: Callable[[TangramEnv, np.ndarray], torch.Tensor] | None = None,
+             ) -> tuple[np.ndarray, PlannerLabels | None]:
         n, nw, p, k = len(targets), env.batch_size[0], env.num_pieces, self.k
         if nw < k:
             raise ValueError(f"lookahead k={k} needs at least k worlds, the env has {nw}")
@@ -123,7 +125,7 @@ class Lookahead:
                                 rec["candidates"].append(unravel_actions(top[first], nx, ny))
                                 rec["step"].append(torch.full((m,), t, dtype=torch.int64))
                                 if on_state is not None:
-                                    rec["extra"].append(on_state(env)[first])
+                                    rec["extra"].append(on_state(env, first.numpy()))
                         else:
                             action = dist.mode.cpu()
                     nxt = env.step(td.set("action", action.to(env.device)))["next"]

@@ -1,0 +1,247 @@
+"""Which network can learn the planner's ranking? Fit against generalisation on planner-labelled states.
+
+Reads the data shards of expert-iteration runs (``runs/<name>/data/round_R.pt``: each state, the
+policy's top-k candidates and the silhouette IoU of each one's greedy completion), trains a
+network to rank the candidates as the planner does (the listwise loss of
+:func:`mrchaos.learn.bc.ranking_loss`), and prints, per epoch, on the training states and on
+held-out ones (other chaos objects):
+
+* agreement: the share of states whose top-ranked candidate is the planner's choice;
+* regret: the IoU the planner's choice reaches minus that of the network's choice (mean).
+
+Networks (``--net``):
+
+* ``policy``: the spatial policy itself (from ``--init``), its windowed mode scores at the
+  candidates, ranking loss only (``--dense W`` adds W x the dense loss of the same states);
+* ``afterstate``: a separate re-ranker with a global view, scoring each candidate from the
+  silhouette, the view and the candidate piece's footprint drawn into it (no simulation), plus
+  the policy's own score as a prior; ``--width`` sets its channels.
+
+At the end, ``--eval N`` plays N held-out Random objects (seed ``--seed``) greedily with the
+result (for ``afterstate``, the policy's top-k re-ranked) and prints Rela / Final.
+
+    python tools/ranking_fit.py --train runs/lab_train --held runs/lab_heldout --net policy --epochs 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict
+from torch import nn
+
+from mrchaos.core.raster import rasterize
+from mrchaos.env.tangram import TangramEnv
+from mrchaos.learn.bc import SHARD_KEYS, ranking_loss, supervised_loss
+from mrchaos.learn.checkpoint import checkpoint_path, load_checkpoint
+from mrchaos.learn.config import config_from_dict, load_config
+from mrchaos.learn.evaluate import evaluate
+from mrchaos.learn.policy import build_actor_critic
+from mrchaos.tasks.chaos import generate
+
+
+def load_states(run: Path) -> dict[str, torch.Tensor]:
+    """The planner-labelled states of a run's shards, with each state's step (piece index)."""
+    cfg = load_config(run / "config.yaml")
+    per_chunk = cfg.env.num_worlds // cfg.exit.k  # targets the planner holds at once
+    shards = [torch.load(p, weights_only=True) for p in sorted((run / "data").glob("round_*.pt"))]
+    out: dict[str, list[torch.Tensor]] = {k: [] for k in (*SHARD_KEYS, "step")}
+    for s in shards:
+        keep = ~s["iou"][:, 0].isnan()
+        if not keep.any():
+            continue
+        n = int(keep.sum())
+        # Rows run (chunk, step, target) with ``per_chunk`` targets a chunk (the last may be short).
+        objects = n // 7
+        step = torch.cat([torch.arange(7).repeat_interleave(min(per_chunk, objects - c))
+                          for c in range(0, objects, per_chunk)])
+        for k in SHARD_KEYS:
+            out[k].append(s[k][keep])
+        out["step"].append(step)
+    return {k: torch.cat(v) for k, v in out.items()}
+
+
+def candidate_masks(env: TangramEnv, candidates: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+    """(S, k, H, W) bool footprint of each candidate placement of the state's piece, drawn in the view."""
+    ps, g = env.piece_set, env.grid
+    s, k = candidates.shape[:2]
+    act = candidates.reshape(-1, 3).numpy()
+    piece = np.repeat(step.numpy(), k)
+    poses = np.zeros((len(act), len(ps), 3))
+    origin = g.to_pose(act)
+    mirrored = g.mirrored(act)
+    poses[np.arange(len(act)), piece] = ps.to_centroid(piece, origin, mirrored)
+    faces = np.zeros((len(act), len(ps)), dtype=bool)
+    faces[np.arange(len(act)), piece] = mirrored
+    visible = np.zeros((len(act), len(ps)), dtype=bool)
+    visible[np.arange(len(act)), piece] = True
+    out = []
+    for i in range(0, len(act), 4096):
+        sl = slice(i, i + 4096)
+        polys = ps.footprints(poses[sl], faces[sl])
+        out.append(rasterize(polys, env.view, visible=visible[sl], parts=ps.raster_parts).ids >= 0)
+    return torch.cat(out).reshape(s, k, *out[0].shape[-2:])
+
+
+class AfterstateRanker(nn.Module):
+    """Scores each candidate from [silhouette, view, candidate footprint] with a CNN that sees the
+    whole image (pooled to 60x60, four stride-2 layers to 4x4 cells, then an MLP over all of
+    them), plus a learnt multiple of the policy's own score."""
+
+    def __init__(self, width: int = 32, size: int = 120) -> None:
+        super().__init__()
+        w = width
+        self.conv = nn.Sequential(
+            nn.Conv2d(3, w, 5, stride=2, padding=2), nn.ReLU(),
+            nn.Conv2d(w, 2 * w, 3, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(2 * w, 2 * w, 3, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(2 * w, 2 * w, 3, stride=2, padding=1), nn.ReLU(),
+        )
+        cells = -(-size // 32)  # the input is average-pooled by 2 first (4.3 mm pixels)
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(2 * w * cells * cells, 256), nn.ReLU(), nn.Linear(256, 1))
+        self.prior = nn.Parameter(torch.ones(()))
+
+    def forward(self, obs: torch.Tensor, masks: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
+        b, k = masks.shape[:2]
+        x = torch.cat([obs[:, None].expand(b, k, 2, *obs.shape[-2:]).float() / 255,
+                       masks[:, :, None].float()], 2).reshape(b * k, 3, *obs.shape[-2:])
+        x = F.avg_pool2d(x, 2)
+        return self.head(self.conv(x)).reshape(b, k) + self.prior * prior
+
+
+def scores_at(dist, candidates: torch.Tensor) -> torch.Tensor:
+    t, y, x = dist.grid_shape
+    flat = candidates[..., 2] * (x * y) + candidates[..., 1] * x + candidates[..., 0]
+    return dist.mode_scores.gather(-1, flat)
+
+
+def judge(scores: torch.Tensor, iou: torch.Tensor) -> tuple[float, float]:
+    pick = scores.argmax(1)
+    best = iou.argmax(1)
+    regret = iou.max(1).values - iou.gather(1, pick[:, None]).squeeze(1)
+    return float((pick == best).float().mean()), float(regret.mean())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--train", type=Path, nargs="+", required=True, help="runs whose shards train")
+    ap.add_argument("--held", type=Path, nargs="+", required=True, help="runs whose shards are held out")
+    ap.add_argument("--init", default="mrchaos-dense", help="the policy (a shipped name, a run or a file)")
+    ap.add_argument("--net", choices=["policy", "afterstate"], default="policy")
+    ap.add_argument("--dense", type=float, default=0.0, help="policy: weight of the dense loss beside the ranking")
+    ap.add_argument("--width", type=int, default=32)
+    ap.add_argument("--epochs", type=int, default=10)
+    ap.add_argument("--lr", type=float, default=3e-4)
+    ap.add_argument("--batch", type=int, default=128)
+    ap.add_argument("--temperature", type=float, default=0.01)
+    ap.add_argument("--limit", type=int, default=0, help="train on the first N states only (0: all)")
+    ap.add_argument("--eval", type=int, default=200)
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+
+    path = checkpoint_path(args.init)
+    st = load_checkpoint(path)
+    cfg = config_from_dict(st["config"])
+    env = TangramEnv(dataclasses.replace(cfg.env_config(), task=cfg.task.given_targets()), seed=0)
+    ac = build_actor_critic(cfg.policy, env.grid, env.view, env.action_spec)
+    ac.load_state_dict(st["model"])
+    policy = ac.get_policy_operator()
+    sets = {}
+    for name, runs in (("train", args.train), ("held", args.held)):
+        parts = [load_states(r) for r in runs]
+        sets[name] = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+    if args.limit:
+        sets["train"] = {k: v[: args.limit] for k, v in sets["train"].items()}
+    print(f"{len(sets['train']['iou'])} training states, {len(sets['held']['iou'])} held-out; net {args.net}")
+
+    def policy_scores(obs: torch.Tensor, cand: torch.Tensor, grad: bool = False):
+        with torch.set_grad_enabled(grad):
+            dist = policy.get_dist(TensorDict(observation=obs, batch_size=[len(obs)]))
+            return dist, scores_at(dist, cand)
+
+    def all_scores(data: dict, model=None) -> torch.Tensor:
+        out = []
+        for i in range(0, len(data["iou"]), 512):
+            sl = slice(i, i + 512)
+            _, s = policy_scores(data["observation"][sl], data["candidates"][sl])
+            if model is not None:
+                with torch.no_grad():
+                    s = model(data["observation"][sl], data["masks"][sl], s)
+            out.append(s)
+        return torch.cat(out)
+
+    ranker = None
+    if args.net == "afterstate":
+        t0 = time.perf_counter()
+        for d in sets.values():
+            d["masks"] = candidate_masks(env, d["candidates"], d["step"])
+        print(f"candidate footprints drawn in {time.perf_counter() - t0:.0f} s")
+        ranker = AfterstateRanker(args.width, env.view.size)
+        params = list(ranker.parameters())
+    else:
+        params = list(ac.parameters())
+    opt = torch.optim.Adam(params, lr=args.lr)
+    for name, d in sets.items():
+        a, r = judge(all_scores(d), d["iou"])
+        print(f"before: {name} agreement {100 * a:.1f} %, regret {r:.4f}")
+    train = sets["train"]
+    n = len(train["iou"])
+    for epoch in range(1, args.epochs + 1):
+        t0 = time.perf_counter()
+        perm = torch.randperm(n)
+        for i in range(0, n, args.batch):
+            idx = perm[i : i + args.batch]
+            obs, cand, iou = train["observation"][idx], train["candidates"][idx], train["iou"][idx]
+            if ranker is None:
+                dist, s = policy_scores(obs, cand, grad=True)
+                loss = ranking_loss(dist, cand, iou, args.temperature).mean()
+                if args.dense:
+                    loss = loss + args.dense * supervised_loss(dist, train["label"][idx], True, 0.01).mean()
+            else:
+                _, prior = policy_scores(obs, cand)
+                s = ranker(obs, train["masks"][idx], prior)
+                target = torch.softmax(iou / args.temperature, -1)
+                loss = -(target * F.log_softmax(s, -1)).sum(-1).mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+        cells = []
+        for name, d in sets.items():
+            a, r = judge(all_scores(d, ranker), d["iou"])
+            cells.append(f"{name} agreement {100 * a:.1f} %, regret {r:.4f}")
+        print(f"epoch {epoch} ({time.perf_counter() - t0:.0f} s): " + "; ".join(cells), flush=True)
+
+    if args.eval:
+        targets, _, mirrored = generate(env.piece_set, args.eval, np.random.default_rng(args.seed), cfg.task.chaos,
+                                        env.view)
+        ev = TangramEnv(dataclasses.replace(cfg.env_config(), num_worlds=100, task=cfg.task.given_targets()), seed=0)
+        k = train["candidates"].shape[1]
+
+        def act(e: TangramEnv, td: TensorDict) -> torch.Tensor:
+            with torch.no_grad():
+                dist = policy.get_dist(td.select("observation").clone())
+                if ranker is None:
+                    return dist.mode
+                top = dist.top_modes(k)
+                _, y, x = dist.grid_shape
+                cand = torch.stack([top % x, (top // x) % y, top // (x * y)], -1)
+                step = torch.as_tensor(e.next_piece)
+                s = ranker(td["observation"], candidate_masks(e, cand, step), scores_at(dist, cand))
+                return cand[torch.arange(len(cand)), s.argmax(1)]
+
+        res = evaluate(ev, targets, act, mirrored=mirrored)
+        print(f"greedy on {args.eval} Random objects (seed {args.seed}): Rela {100 * res.rela.mean():.1f} "
+              f"Final {100 * res.final.mean():.1f}")
+
+
+if __name__ == "__main__":
+    main()
