@@ -62,7 +62,8 @@ def main() -> None:
             r = run(n, policy, args.episodes, args.threads)
             print(
                 f"{n:>5} {policy:>7} {r['sps']:>9.0f} {100 * r['physics_share']:>8.1f}% | "
-                f"{100 * r['physics']:>6.1f}% {100 * r['images']:>6.1f}% {100 * r['reward']:>6.1f}% {100 * r['other']:>6.1f}%"
+                f"{100 * r['physics']:>6.1f}% {100 * r['images']:>6.1f}% {100 * r['reward']:>6.1f}% "
+                f"{100 * r['other']:>6.1f}%"
             )
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
 

@@ -107,7 +107,8 @@ def _flips(ps, total: int, n: int, threads: int) -> None:
     print(f"flips: {good.sum()} of {total} land flat, mirrored, within 2 mm and 2 deg ({failed.sum()} flagged); "
           f"error median {1e3 * np.median(dist[fin]):.2f} mm, max {1e3 * dist[fin].max():.2f} mm, "
           f"{np.degrees(angle[fin].max()):.2f} deg")
-    print(f"a flipped placement: {wall / batches:.2f} s wall per call of {n} worlds against {plain_wall / batches:.2f} s "
+    print(f"a flipped placement: {wall / batches:.2f} s wall per call of {n} worlds against "
+          f"{plain_wall / batches:.2f} s "
           f"for the same placement face up; {sim / n:.1f} simulated s per world (last call)")
 
 

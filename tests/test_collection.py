@@ -144,9 +144,9 @@ def test_ray_smoke_run_passes_the_curriculum_switch_and_checkpoints(tmp_path):
     stages = [int(r["stage"]) for r in rows]
     assert stages[0] == LOCAL and stages[-1] == GLOBAL, stages
     episodes = [int(r["episodes"]) for r in rows]
-    ended = [b - a for a, b in zip([0] + episodes, episodes)]
+    ended = [b - a for a, b in zip([0] + episodes, episodes, strict=False)]
     frames = 128
-    for stage, e in zip(stages, ended):
+    for stage, e in zip(stages, ended, strict=True):
         if stage == LOCAL:
             assert e == frames  # one placement per episode
         else:

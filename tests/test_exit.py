@@ -11,8 +11,8 @@ from tensordict import TensorDict
 
 from mrchaos.bench.benchmark import Bench, resolve_policy
 from mrchaos.cli.train import main as train_main
-from mrchaos.learn import bc
 from mrchaos.env.tangram import TangramEnv
+from mrchaos.learn import bc
 from mrchaos.learn.checkpoint import load_checkpoint
 from mrchaos.learn.config import load_config
 from mrchaos.learn.planner import Lookahead
@@ -63,7 +63,8 @@ def test_a_label_names_the_candidate_the_planner_itself_ranked_first():
 def _exit_run(tmp_path, *extra):
     return train_main([str(ROOT / "conf" / "exit.yaml"), f"runs_dir={tmp_path}", "init_from=null", "bc.epochs=2",
                        "bc.objects=24", "exit.rounds=2", "exit.objects=8", "exit.k=3", "exit.epochs=3",
-                       "env.num_worlds=24", "optim.lr=1e-3", "bc.minibatch_size=32", "exit.weight=5", *TINY_NET, *extra])
+                       "env.num_worlds=24", "optim.lr=1e-3", "bc.minibatch_size=32", "exit.weight=5", "exit.dense=1",
+                       *TINY_NET, *extra])
 
 
 def test_a_seconds_long_distillation_run_lowers_its_loss_and_checkpoints_every_round(tmp_path):

@@ -34,7 +34,7 @@ def test_json_round_trip(tmp_path, mrchaos104):
     save_figures(figs, out, name="five")
     back = load_json(out)
     assert [f.id for f in back.figures] == [f.id for f in figs]
-    for a, b in zip(figs, back.figures):
+    for a, b in zip(figs, back.figures, strict=True):
         assert np.allclose(a.polygons(), b.polygons(), atol=2e-6)
         assert a.family == b.family
 
@@ -51,7 +51,8 @@ def _good_entry(fid="f"):
                       [0.0, 0.0, 0], [-0.09, 0.0, 0], [0.09, 0.0, 0]], float)
     poses[:, :2] *= 1.0
     f = Figure(fid, ps, poses)
-    return {"id": fid, "pieces": [{"piece": n, "vertices": f.piece_polygon(i).tolist()} for i, n in enumerate(ps.names)]}
+    pieces = [{"piece": n, "vertices": f.piece_polygon(i).tolist()} for i, n in enumerate(ps.names)]
+    return {"id": fid, "pieces": pieces}
 
 
 def test_malformed_files_name_file_and_figure(tmp_path):
@@ -94,7 +95,8 @@ def test_the_good_entry_is_valid(tmp_path):
 def test_mirrored_parallelogram_is_flagged():
     ps = tangram7()
     par = ps.pieces[3]
-    polys = [rigid_transform(p.outline, np.array([0.3 * (i - 3) / 3, 0.0, 0.0])) * [0.3, 1] for i, p in enumerate(ps.pieces)]
+    polys = [rigid_transform(p.outline, np.array([0.3 * (i - 3) / 3, 0.0, 0.0])) * [0.3, 1]
+             for i, p in enumerate(ps.pieces)]
     from mrchaos.figures.figure import figure_from_polygons
 
     polys = [rigid_transform(p.outline, np.array([0.0, 0.0, 0.0])) for p in ps.pieces]
@@ -111,8 +113,8 @@ def test_kilogram_samples_import(kilogram_dir):
         for i in range(7):
             rebuilt = f.piece_polygon(i)
             dev = np.linalg.norm(rebuilt[:, None] - norm[i][None], axis=-1).min(1).max()
-            if f.id == "page-A" and f.piece_set.names[i] in ("large_triangle_1", "large_triangle_2", "medium_triangle") \
-                    and dev > 0.5e-3:
+            distorted = ("large_triangle_1", "large_triangle_2", "medium_triangle")
+            if f.id == "page-A" and f.piece_set.names[i] in distorted and dev > 0.5e-3:
                 # The book's digitisation distorts these two triangles (edges 107.7/109.1/154.6 and
                 # 66.4/67.8/93.2 SVG units against 106.15/106.15/150.12 and 75.06/75.06/106.15):
                 # no exact piece is within 0.5 mm, so the importer keeps the best fit.
@@ -150,7 +152,8 @@ def test_kilogram_transforms_and_y_flip(tmp_path):
     for i in range(7):
         pts = fig.piece_polygon(i) * [1000, -1000]  # mm, y down
         pts = pts @ np.array([[0, -1], [1, 0]])  # rotate by -90 deg, undone by rotate(90) below
-        body += '<g transform="scale(2)"><polygon transform="rotate(90)" points="' + " ".join(f"{x/2:.6f},{y/2:.6f}" for x, y in pts) + '"/></g>'
+        points = " ".join(f"{x/2:.6f},{y/2:.6f}" for x, y in pts)
+        body += '<g transform="scale(2)"><polygon transform="rotate(90)" points="' + points + '"/></g>'
     svg = tmp_path / "t.svg"
     svg.write_text(f'<svg xmlns="http://www.w3.org/2000/svg">{body}</svg>')
     back = svg_to_figure(svg)

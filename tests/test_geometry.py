@@ -54,8 +54,8 @@ def test_tangram7_facts(tangram):
 def test_register_new_piece_set():
     disc = np.stack([np.cos(np.linspace(0, 2 * np.pi, 16, endpoint=False)),
                      np.sin(np.linspace(0, 2 * np.pi, 16, endpoint=False))], 1) * 0.033
-    register_piece_set("cans3", lambda: PieceSet("cans3", tuple(Piece(f"can{i}", disc, 0.12, symmetry=0) for i in range(3)),
-                                                 twins=((0, 1, 2),)))
+    cans = tuple(Piece(f"can{i}", disc, 0.12, symmetry=0) for i in range(3))
+    register_piece_set("cans3", lambda: PieceSet("cans3", cans, twins=((0, 1, 2),)))
     ps = get_piece_set("cans3")
     assert len(ps) == 3 and ps.twin_matrix().all()
     assert ps.pieces[0].symmetry_period == 0.0

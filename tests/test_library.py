@@ -57,7 +57,7 @@ def test_size_ids_and_names(figures):
     assert len(set(ids)) == len(ids), [k for k, n in Counter(ids).items() if n > 1]
     assert len(set(names)) == len(names), [k for k, n in Counter(names).items() if n > 1]
     assert all(i and i == i.lower() and " " not in i for i in ids)
-    assert all(n and n != i for n, i in zip(names, ids)), "every figure needs a human name"
+    assert all(n and n != i for n, i in zip(names, ids, strict=True)), "every figure needs a human name"
 
 
 def test_file_header_and_exact_corners():
@@ -68,7 +68,7 @@ def test_file_header_and_exact_corners():
     # the loader re-fits every piece to the stored corners, so they must be the corners
     # of the exact piece to well below the rasteriser's tie tolerance (0.2 um)
     scale = {"metre": 1.0, "millimetre": 1e-3}[data["units"]]
-    for entry, fig in zip(data["figures"], builtin_figures()):
+    for entry, fig in zip(data["figures"], builtin_figures(), strict=True):
         assert entry["id"] == fig.id
         assert "family" not in entry, "families come from the perimeter rule"
         for i, piece in enumerate(entry["pieces"]):
@@ -104,7 +104,7 @@ def test_union_is_one_shape_of_the_whole_area(figures):
         # shapely splits the union where pieces meet at a single corner: the parts
         # must still touch each other
         parts = list(getattr(union, "geoms", [union]))
-        assert _connected(parts, lambda k, m: parts[k].distance(parts[m]) <= TOUCH), fig.id
+        assert _connected(parts, lambda k, m, parts=parts: parts[k].distance(parts[m]) <= TOUCH), fig.id
 
 
 def test_every_piece_touches_and_edges_hold_the_figure(figures):
@@ -113,7 +113,7 @@ def test_every_piece_touches_and_edges_hold_the_figure(figures):
         for i, p in enumerate(polys):
             gap = min(p.distance(q) for j, q in enumerate(polys) if j != i)
             assert gap <= TOUCH, (fig.id, fig.piece_set.names[i], gap)
-        assert _connected(polys, lambda k, m: polys[k].distance(polys[m]) <= TOUCH), fig.id
+        assert _connected(polys, lambda k, m, polys=polys: polys[k].distance(polys[m]) <= TOUCH), fig.id
         # as in the books most contacts are edges: joined along edges only, the pieces
         # fall into at most three groups (hung together by at most two corners)
         groups = 0

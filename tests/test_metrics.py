@@ -34,15 +34,20 @@ def cover(cur, tgt):
 
 
 def test_piece_on_target_scores_one():
-    tgt = blank(); tgt[0, 5:15, 5:15] = 2
+    tgt = blank()
+    tgt[0, 5:15, 5:15] = 2
     assert cover(tgt.clone(), tgt)[2].item() == 1.0
 
 
 def test_known_shift_scores_known_fraction():
-    tgt = blank(); tgt[0, 5:15, 5:15] = 2  # 100 px
-    cur = blank(); cur[0, 5:15, 8:18] = 2  # 3 columns off: 70 px on target
+    tgt = blank()
+    tgt[0, 5:15, 5:15] = 2  # 100 px
+    cur = blank()
+    cur[0, 5:15, 8:18] = 2  # 3 columns off: 70 px on target
     assert cover(cur, tgt)[2].item() == pytest.approx(0.7)
-    cur2 = blank(); cur2[0, 7:15, 5:15] = 2; cur2[0, 5:7, 5:15] = 4  # piece 4 hides two rows
+    cur2 = blank()
+    cur2[0, 7:15, 5:15] = 2
+    cur2[0, 5:7, 5:15] = 4  # piece 4 hides two rows
     assert cover(cur2, tgt)[2].item() == pytest.approx(0.8)
 
 
@@ -59,18 +64,26 @@ def test_rasterised_shift_by_whole_pixels():
 
 
 def test_swapped_twins_score_one():
-    tgt = blank(); tgt[0, 0:10, 0:10] = 0; tgt[0, 20:30, 20:30] = 1
-    cur = blank(); cur[0, 0:10, 0:10] = 1; cur[0, 20:30, 20:30] = 0
+    tgt = blank()
+    tgt[0, 0:10, 0:10] = 0
+    tgt[0, 20:30, 20:30] = 1
+    cur = blank()
+    cur[0, 0:10, 0:10] = 1
+    cur[0, 20:30, 20:30] = 0
     cov = cover(cur, tgt)
     assert cov[0].item() == 1.0 and cov[1].item() == 1.0
     assert strict_rela(cur, tgt, PS.twins, P)[0].item() == pytest.approx(2 / 7)
 
 
 def test_both_twins_on_one_slot_rela_vs_strict():
-    tgt = blank(); tgt[0, 0:10, 0:10] = 5; tgt[0, 20:30, 20:30] = 6
+    tgt = blank()
+    tgt[0, 0:10, 0:10] = 5
+    tgt[0, 20:30, 20:30] = 6
     # Step 1: small triangle 1 on slot 5. Step 2: small triangle 2 on the same slot, on top.
-    step1 = blank(); step1[0, 0:10, 0:10] = 5
-    step2 = blank(); step2[0, 0:10, 0:10] = 6
+    step1 = blank()
+    step1[0, 0:10, 0:10] = 5
+    step2 = blank()
+    step2[0, 0:10, 0:10] = 6
     r1, r2 = cover(step1, tgt)[5].item(), cover(step2, tgt)[6].item()
     assert r1 == 1.0 and r2 == 1.0  # the paper's per-step reward: both pay
     assert rela(torch.tensor([[r1, r2]]))[0].item() == 1.0
@@ -80,7 +93,8 @@ def test_both_twins_on_one_slot_rela_vs_strict():
 
 
 def test_empty_scene_scores_zero():
-    tgt = blank(); tgt[0, 0:10, 0:10] = 2
+    tgt = blank()
+    tgt[0, 0:10, 0:10] = 2
     cur = blank()
     assert cover(cur, tgt).sum().item() == 0.0
     sil = tgt >= 0
@@ -90,8 +104,11 @@ def test_empty_scene_scores_zero():
 
 
 def test_final_ignores_spill_but_iou_does_not():
-    tgt = blank(); tgt[0, 0:10, 0:10] = 2
-    cur = blank(); cur[0, 0:10, 0:10] = 2; cur[0, 20:30, 20:30] = 3  # a piece spilled outside
+    tgt = blank()
+    tgt[0, 0:10, 0:10] = 2
+    cur = blank()
+    cur[0, 0:10, 0:10] = 2
+    cur[0, 20:30, 20:30] = 3  # a piece spilled outside
     sil = tgt >= 0
     assert final_coverage(cur, sil)[0].item() == 1.0
     assert iou(cur, sil)[0].item() == pytest.approx(0.5)

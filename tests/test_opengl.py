@@ -18,7 +18,8 @@ def _python(code: str, **env: str | None) -> subprocess.CompletedProcess:
 
 
 def test_import_leaves_a_user_mujoco_gl_alone():
-    r = _python("import os, mrchaos, mrchaos.env.tangram, mrchaos.bench.benchmark; print(os.environ['MUJOCO_GL'])", MUJOCO_GL="egl")
+    r = _python("import os, mrchaos, mrchaos.env.tangram, mrchaos.bench.benchmark; print(os.environ['MUJOCO_GL'])",
+                MUJOCO_GL="egl")
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "egl"
 

@@ -141,8 +141,8 @@ def test_spatial_context_path_reaches_across_the_view(context):
     far = obs.clone()
     far[0, :, -8:, -8:] = 255 - far[0, :, -8:, -8:]  # bottom-right corner
     with torch.no_grad():
-        a, b = (policy.get_dist(TensorDict(observation=o, batch_size=[1])).scores.view(1, grid.norient, grid.ny, grid.nx)
-                for o in (obs, far))
+        a, b = (policy.get_dist(TensorDict(observation=o, batch_size=[1])).scores
+                .view(1, grid.norient, grid.ny, grid.nx) for o in (obs, far))
     cy, cx = grid.ny // 2, grid.nx // 2
     centre = (a - b)[..., cy - 1:cy + 2, cx - 1:cx + 2].abs().max().item()
     assert (centre > 1e-6) == bool(context)

@@ -62,7 +62,7 @@ def test_calibration_finds_a_moved_and_turned_base() -> None:
     yaw = np.array([0.0, 1.0, -2.0])
     q, ok = robot.solve(pos, yaw, np.repeat(robot.solve(pos[:1], yaw[:1], np.zeros((1, 6)))[0], 3, 0))
     assert ok.all()
-    for qi, p, y in zip(q, pos, yaw):
+    for qi, p, y in zip(q, pos, yaw, strict=True):
         tcp = robot.tcp_pose(qi)
         assert np.abs(tcp[:3, 3] - p).max() < 1e-6
         assert tcp[2, 2] < -0.9999  # tool pointing down
@@ -84,7 +84,7 @@ def test_a_model_off_the_dh_table_is_solved_by_refinement(tmp_path) -> None:
     pos = np.array([[0.0, 0.0, 0.05], [0.1, -0.1, 0.02], [-0.1, 0.1, 0.1]])
     q, ok = robot.solve(pos, np.array([0.0, 1.0, -2.0]), np.tile([0.0, -1.57, 1.57, -1.57, -1.57, 0.0], (3, 1)))
     assert ok.all()
-    for qi, p in zip(q, pos):
+    for qi, p in zip(q, pos, strict=True):
         assert np.abs(robot.tcp_pose(qi)[:3, 3] - p).max() < 1e-5
 
 

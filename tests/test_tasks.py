@@ -100,7 +100,7 @@ def test_exact_oracle_assembles_every_goal(task: str) -> None:
         for _ in range(len(env.piece_set)):
             out = env.place_poses(*oracle_poses(env))
         final = out["info", "final"][:, 0]
-        assert (final >= 0.99).all(), {g.id: float(f) for g, f in zip(sub, final)}
+        assert (final >= 0.99).all(), {g.id: float(f) for g, f in zip(sub, final, strict=True)}
         env.close()
 
 
@@ -113,7 +113,7 @@ def test_chaos_generators_make_separate_pieces_inside_the_view(set_name: str) ->
     assert set(modes.tolist()) == {0, 1}
     half = cfg.env.view.extent / 2
     for obj in poses:
-        polys = [shapely.Polygon(rigid_transform(p.outline, q)) for p, q in zip(ps.pieces, obj)]
+        polys = [shapely.Polygon(rigid_transform(p.outline, q)) for p, q in zip(ps.pieces, obj, strict=True)]
         assert all(np.abs(np.asarray(pl.exterior.coords)).max() <= half for pl in polys)
         assert shapely.union_all(polys).area == pytest.approx(sum(pl.area for pl in polys), rel=1e-6)
 

@@ -78,7 +78,8 @@ def test_checkpoint_errors(tmp_path):
     soda = TangramEnv(EnvConfig(num_worlds=1, piece_set="soda3", task=TaskConfig(mix=MixConfig(chaos=1.0, cache=0.0))))
     with pytest.raises(CheckpointError, match="piece set 'tangram7', not 'soda3'"):
         check_header(st, p, soda)
-    small = TangramEnv(EnvConfig(num_worlds=1, view=View(size=64), task=TaskConfig(mix=MixConfig(chaos=1.0, cache=0.0))))
+    task = TaskConfig(mix=MixConfig(chaos=1.0, cache=0.0))
+    small = TangramEnv(EnvConfig(num_worlds=1, view=View(size=64), task=task))
     with pytest.raises(CheckpointError, match="observation shape"):
         check_header(st, p, small)
 
@@ -248,7 +249,8 @@ def test_bf16_first_minibatch_ratios_are_one(tmp_path, monkeypatch):
     # would fall back to fp32; the numerics under test are the same either way.
     monkeypatch.setattr(precision, "cpu_has_bf16", lambda: True)
 
-    cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "precision=bf16", "compile=true", "logger.backends=[]", "logger.progress=false"])
+    cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "precision=bf16", "compile=true", "logger.backends=[]",
+                              "logger.progress=false"])
     trainer = Trainer(cfg, tmp_path / "bf16")
     assert trainer.precision == "bf16"
     data = next(iter(trainer.collector))

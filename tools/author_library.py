@@ -944,7 +944,7 @@ def check_stored(path: str | Path, built: list[Figure], rule: FamilyRule = Famil
         raise LibraryError(f"{path}: the loader rejects {fs.rejected}")
     if fs.name != LIBRARY_NAME or [f.id for f in fs.figures] != [f.id for f in built]:
         raise LibraryError(f"{path}: name or figure ids differ from the authored ones")
-    for stored, exact in zip(fs.figures, built):
+    for stored, exact in zip(fs.figures, built, strict=True):
         where = f"{path}: figure {stored.id!r}"
         if stored.has_mirrored:
             raise LibraryError(f"{where}: stored with a flipped parallelogram")

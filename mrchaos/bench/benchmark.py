@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from mrchaos.learn.planner import Lookahead
 from mrchaos.core.atomic import write_atomic
 from mrchaos.core.errors import MrchaosError
 from mrchaos.env.oracle import oracle_actions
@@ -41,6 +40,7 @@ from mrchaos.learn.evaluate import (
     evaluate,
     policy_actor,
 )
+from mrchaos.learn.planner import Lookahead
 from mrchaos.tasks.chaos import generate
 from mrchaos.tasks.presets import TaskPreset, get_preset
 
@@ -223,7 +223,7 @@ class Bench:
                 sets = self.preset.random_sets
                 counts = [random_objects // len(sets) + (i < random_objects % len(sets)) for i in range(len(sets))]
                 groups = []
-                for name, k in zip(sets, counts):
+                for name, k in zip(sets, counts, strict=True):
                     if k > 0:
                         poses, _, mirrored = generate(get_piece_set(name), k, rng, self.env_config.task.chaos,
                                                       self.env_config.view)
@@ -411,7 +411,8 @@ def format_piece_table(results: dict, families: list[str]) -> str:
     for pol in results["policies"].values():
         for f in fams:
             b = pol["families"][f]["by_piece"]
-            cells = [f"{100 * c:.1f} ({100 * m:.0f})" if k else "" for c, m, k in zip(b["coverage"], b["misplaced"], b["n"])]
+            cells = [f"{100 * c:.1f} ({100 * m:.0f})" if k else ""
+                     for c, m, k in zip(b["coverage"], b["misplaced"], b["n"], strict=True)]
             lines.append("| " + " | ".join([pol["label"], f] + cells + [""] * (width - len(cells))) + " |")
     return "\n".join(lines)
 
@@ -436,7 +437,7 @@ def format_table(results: dict, families: list[str], markdown: bool = False) -> 
         else:
             widths = [max(len(r[i]) for r in rows + [head]) for i in range(len(head))]
 
-            def fmt(r: list[str]) -> str:
+            def fmt(r: list[str], widths: list[int] = widths) -> str:  # this table's widths
                 return "  ".join(c.ljust(widths[i]) if i == 0 else c.rjust(widths[i]) for i, c in enumerate(r))
 
             lines = [title, fmt(head), "-" * (sum(widths) + 2 * len(widths))] + [fmt(r) for r in rows]
@@ -477,5 +478,6 @@ def write_outputs(results: dict, families: list[str], out: Path) -> None:
         md += ["", "Figures that need a chiral piece turned over (evaluated with --flip): "
                + ", ".join(f"{fam} {k}" for fam, k in results["needs_flip"].items())]
     if results["skipped"]:
-        md += ["", f"Skipped {len(results['skipped'])} figures:"] + [f"- {fid}: {why}" for fid, why in results["skipped"]]
+        md += ["", f"Skipped {len(results['skipped'])} figures:"]
+        md += [f"- {fid}: {why}" for fid, why in results["skipped"]]
     write_atomic(out / "results.md", "\n".join(md) + "\n")

@@ -43,7 +43,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--scenes", type=int, default=1, help="with --placement robot and --record or --video: episodes "
                     "per policy and family whose scene is rendered (a few frames per placement)")
     ap.add_argument("--flip", action="store_true", help="evaluate figures that need a chiral piece turned over "
-                    "(skipped otherwise); random and oracle get the action grid's flip, a checkpoint keeps its own grid. "
+                    "(skipped otherwise); random and oracle get the action grid's flip, a checkpoint keeps its "
+                    "own grid. "
                     "Implied when a policy was trained with the flip")
     ap.add_argument("--out", type=Path, default=Path("runs/bench"))
     ap.add_argument("--seed", type=int, default=0)
@@ -91,7 +92,8 @@ def _bench(args: argparse.Namespace) -> int:
         choose_backend()  # fail before the evaluation, not after it
     bench = Bench(sets, families, args.random_objects, args.seed, args.placement, args.worlds,
                   robot_model=args.robot_model, perturb_after=args.perturb,
-                  perturb_distance=args.perturb_distance, scenes=max(args.scenes, 1 if args.video else 0) if film else 0,
+                  perturb_distance=args.perturb_distance,
+                  scenes=max(args.scenes, 1 if args.video else 0) if film else 0,
                   task=args.task, flip=flip, lookahead=args.lookahead,
                   mode_window=args.mode_window)
     for fid, why in bench.skipped:

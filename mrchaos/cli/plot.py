@@ -46,7 +46,7 @@ def plot_runs(run_dirs: list[Path], out: Path, window: int = 10, xs: tuple[str, 
             raise ValueError(f"--x must be one of {', '.join(AXES)}, got {x!r}")
     fig, axes = plt.subplots(1, len(xs), figsize=(7 * len(xs), 4), dpi=120, squeeze=False)
     runs = [(run, read_metrics(run)) for run in run_dirs]
-    for ax, x in zip(axes[0], xs):
+    for ax, x in zip(axes[0], xs, strict=True):
         for run, rows in runs:
             if not rows or "rela" not in rows[0]:
                 raise ValueError(f"{run}: metrics.csv has no rela column (a supervised run?)")

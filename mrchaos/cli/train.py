@@ -11,7 +11,8 @@ from mrchaos.cli.guard import run_command
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrchaos-train", description="Train a tangram policy: PPO, or supervision (algo: bc; BC, dense targets, DAgger, expert iteration).")
+    ap = argparse.ArgumentParser(prog="mrchaos-train", description="Train a tangram policy: PPO, or supervision "
+                                 "(algo: bc; BC, dense targets, DAgger, expert iteration).")
     ap.add_argument("config", nargs="?", help="YAML experiment (e.g. conf/full.yaml)")
     ap.add_argument("overrides", nargs="*", help="dotted overrides, e.g. optim.lr=1e-4 env.num_worlds=64")
     ap.add_argument("--resume", metavar="RUN_DIR", help="continue the run in this folder from its last checkpoint")

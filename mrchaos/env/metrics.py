@@ -182,7 +182,8 @@ def iou(cur: torch.Tensor, silhouette: torch.Tensor) -> torch.Tensor:
     return inter / union.clamp(min=1)
 
 
-def strict_rela(cur: torch.Tensor, tgt: torch.Tensor, twin_groups: tuple[tuple[int, ...], ...], num_pieces: int) -> torch.Tensor:
+def strict_rela(cur: torch.Tensor, tgt: torch.Tensor, twin_groups: tuple[tuple[int, ...], ...],
+                num_pieces: int) -> torch.Tensor:
     """(B,) mean per-piece coverage of the final view with twins assigned one-to-one.
 
     Each twin group takes the assignment of its slots that maximises its total

@@ -148,7 +148,8 @@ class TangramEnv(EnvBase):
 
     batch_locked = True
 
-    def __init__(self, cfg: EnvConfig = EnvConfig(), seed: int | None = 0, figures=None, device: str = "cpu"):
+    def __init__(self, cfg: EnvConfig | None = None, seed: int | None = 0, figures=None, device: str = "cpu"):
+        cfg = cfg if cfg is not None else EnvConfig()  # a fresh default: the env keeps and reads it
         super().__init__(device=device, batch_size=torch.Size([cfg.num_worlds]))
         self.cfg = cfg
         self.piece_set = get_piece_set(cfg.piece_set)

@@ -186,7 +186,7 @@ def figure_from_polygons(
         raise FigureError(f"{where}: expected {len(piece_set)} pieces, got {len(polygons)}")
     poses = np.zeros((len(piece_set), 3))
     mirrored = np.zeros(len(piece_set), dtype=bool)
-    for i, (piece, poly) in enumerate(zip(piece_set.pieces, polygons)):
+    for i, (piece, poly) in enumerate(zip(piece_set.pieces, polygons, strict=True)):
         v = np.asarray(poly, dtype=np.float64)
         if v.ndim != 2 or v.shape[1] != 2:
             raise FigureError(f"{where}: piece {piece.name}: vertices must be a list of [x, y] pairs")

@@ -49,7 +49,8 @@ def _transform_matrix(text: str | None, where: str) -> np.ndarray:
             t = r
         elif kind in ("skewX", "skewY") and len(v) == 1:
             k = math.tan(math.radians(v[0]))
-            t = np.array([[1, k, 0], [0, 1, 0], [0, 0, 1]]) if kind == "skewX" else np.array([[1, 0, 0], [k, 1, 0], [0, 0, 1]])
+            t = (np.array([[1, k, 0], [0, 1, 0], [0, 0, 1]]) if kind == "skewX"
+                 else np.array([[1, 0, 0], [k, 1, 0], [0, 0, 1]]))
         else:
             raise FigureError(f"{where}: cannot read transform {kind}({args})")
         m = m @ t
@@ -129,7 +130,7 @@ def _identify(ps: PieceSet, polys: list[np.ndarray], areas: np.ndarray, where: s
         if len(cands) != len(pieces):
             what = f"{k[0]}-corner polygons" + (" with right corners" if k[1] else "")
             raise FigureError(f"{where}: not a standard tangram: {len(cands)} {what}, expected {len(pieces)}")
-        for i, j in zip(pieces, cands):  # twins (equal areas) keep file order
+        for i, j in zip(pieces, cands, strict=True):  # twins (equal areas) keep file order
             result[i] = j
     return result
 
@@ -169,7 +170,7 @@ def svg_to_figure(
     poses = np.zeros((len(ps), 3))
     mirrored = np.zeros(len(ps), dtype=bool)
     errors = np.zeros(len(ps))
-    for i, (piece, poly) in enumerate(zip(ps.pieces, ordered)):
+    for i, (piece, poly) in enumerate(zip(ps.pieces, ordered, strict=True)):
         fit = fit_pose(piece.outline, poly, piece.mirrored_outline() if piece.chiral else None)
         poses[i], mirrored[i] = fit.pose, fit.mirrored
         rebuilt = rigid_transform(piece.mirrored_outline() if fit.mirrored else piece.outline, fit.pose)

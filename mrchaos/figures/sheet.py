@@ -58,7 +58,7 @@ def _grid(tiles: list[Image.Image], labels: list[str], columns: int, label_h: in
     rows = math.ceil(len(tiles) / columns)
     sheet = Image.new("RGB", (columns * tw, rows * (th + label_h)), (255, 255, 255))
     d = ImageDraw.Draw(sheet)
-    for k, (t, lab) in enumerate(zip(tiles, labels)):
+    for k, (t, lab) in enumerate(zip(tiles, labels, strict=True)):
         x, y = (k % columns) * tw, (k // columns) * (th + label_h)
         sheet.paste(t, (x, y + label_h))
         d.text((x + 4, y + 2), lab[: max(8, tw // 7)], fill=(0, 0, 0))

@@ -90,7 +90,8 @@ def _dense_label(env: TangramEnv, overlap_limit: float, rows: np.ndarray | None 
 
 
 def demonstrations(env: TangramEnv, targets: np.ndarray, actor=None, dense: bool = False,
-                   overlap_limit: float = 0.02, mirrored: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                   overlap_limit: float = 0.02,
+                   mirrored: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Observations (M*P, 2, H, W) uint8 along each assembly and their labels.
 
     ``mirrored`` (M, P) bool marks target pieces that lie turned over (the env needs the flip).
@@ -111,7 +112,8 @@ def demonstrations(env: TangramEnv, targets: np.ndarray, actor=None, dense: bool
     evaluate(env, targets, act, mirrored=mirrored)
     nw, n, p = env.batch_size[0], len(targets), env.num_pieces
     keep = [min(nw, n - start) for start in range(0, n, nw) for _ in range(p)]
-    return (torch.cat([o[:k] for o, k in zip(obs, keep)]), torch.cat([lb[:k] for lb, k in zip(labels, keep)]))
+    return (torch.cat([o[:k] for o, k in zip(obs, keep, strict=True)]),
+            torch.cat([lb[:k] for lb, k in zip(labels, keep, strict=True)]))
 
 
 def _targets(cfg: TrainConfig, rng: np.random.Generator, n_chaos: int, seed: int) -> tuple[np.ndarray, np.ndarray, str]:
@@ -122,7 +124,8 @@ def _targets(cfg: TrainConfig, rng: np.random.Generator, n_chaos: int, seed: int
         cfg.task.given_targets().check_flip(flip)  # before the objects are generated, not after
         poses, _, mirrored = generate(get_piece_set(cfg.env.piece_set), n_chaos, np.random.default_rng(seed),
                                       cfg.task.chaos, cfg.env.view)
-        return poses, mirrored, f"{n_chaos} chaos objects (seed {seed}, {int(mirrored.any(1).sum())} with a piece turned over)"
+        turned = int(mirrored.any(1).sum())
+        return poses, mirrored, f"{n_chaos} chaos objects (seed {seed}, {turned} with a piece turned over)"
     figs: list[Figure] = []
     for src in cfg.bc.figure_sets:
         figs += builtin_figures() if src == "builtin" else load_figures(src).figures
@@ -143,7 +146,8 @@ def supervised_loss(dist, labels: torch.Tensor, dense: bool, temperature: float)
     return -(target * dist.logits).sum(-1)
 
 
-def ranking_loss(dist: GridCategorical, candidates: torch.Tensor, iou: torch.Tensor, temperature: float) -> torch.Tensor:
+def ranking_loss(dist: GridCategorical, candidates: torch.Tensor, iou: torch.Tensor,
+                 temperature: float) -> torch.Tensor:
     """Per-sample listwise loss: the cross-entropy between softmax(IoU / T) over a state's planner
     candidates (B, k, 3) and the softmax of the policy's mode scores at the same candidates, the
     scores whose argmax is the deterministic action (windowed under a mode window)."""
@@ -270,7 +274,8 @@ class SupervisedRun:
             try:
                 shard = torch.load(path, weights_only=True)
             except Exception as e:  # torch raises many types for truncated or foreign files
-                raise CheckpointError(f"{path}: not a readable data shard ({type(e).__name__}: {str(e)[:160]})") from None
+                raise CheckpointError(f"{path}: not a readable data shard ({type(e).__name__}: "
+                                      f"{str(e)[:160]})") from None
             if not isinstance(shard, dict) or set(shard) != set(SHARD_KEYS):
                 raise CheckpointError(f"{path}: not a data shard of a supervised run (keys {SHARD_KEYS})")
             log.info("round %d: %d labelled states from %s", r, len(shard["observation"]), path)
@@ -322,7 +327,7 @@ class SupervisedRun:
         log.info("resumed %s at round %d, epoch %d", self.ckpt, self.round, self.epoch)
 
     # ------------------------------------------------------------------ learning
-    def _fit_epoch(self, data: dict[str, torch.Tensor], planned: int) -> dict:
+    def _fit_epoch(self, data: dict[str, torch.Tensor], planned: int, sup_weight: float = 1.0) -> dict:
         cfg, bc = self.cfg, self.cfg.bc
         n = len(data["observation"])
         perm = torch.randperm(n)
@@ -343,7 +348,7 @@ class SupervisedRun:
                 if has.any():
                     rank = ranking_loss(dist, data["candidates"][idx].to(self.device)[has], iou[has],
                                         cfg.exit.temperature).sum() / len(idx)
-                loss = sup + cfg.exit.weight * rank
+                loss = sup_weight * sup + cfg.exit.weight * rank
             self.opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(self.ac.parameters(), cfg.optim.max_grad_norm)
@@ -365,7 +370,7 @@ class SupervisedRun:
             kind, epochs = self.plan[self.round]
             data = {k: torch.cat([s[k] for s in self.shards]) for k in SHARD_KEYS}
             while self.epoch < epochs:
-                res = self._fit_epoch(data, planned)
+                res = self._fit_epoch(data, planned, self.cfg.exit.dense if kind == "exit" else 1.0)
                 self.epoch += 1
                 self.minutes = (time.perf_counter() - t0) / 60
                 row = {"epoch": len(self.rows) + 1, "round": self.round, "kind": kind, **res,

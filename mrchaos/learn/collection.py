@@ -73,7 +73,8 @@ def worker_config(cfg: TrainConfig) -> TrainConfig:
     (a worker may start in another folder) and MuJoCo on the worker's own threads."""
     task = cfg.task
     if task.cache.path:
-        task = dataclasses.replace(task, cache=dataclasses.replace(task.cache, path=str(Path(task.cache.path).resolve())))
+        cache = dataclasses.replace(task.cache, path=str(Path(task.cache.path).resolve()))
+        task = dataclasses.replace(task, cache=cache)
     physics = dataclasses.replace(cfg.env.physics, nthread=cfg.collector.worker_threads)
     return dataclasses.replace(cfg, task=task, env=dataclasses.replace(cfg.env, physics=physics))
 

@@ -241,7 +241,10 @@ class ExitConfig:
         k: candidates per step, the policy's own top-k (separate peaks under a mode window).
         temperature: the target over a state's candidates is softmax(IoU / temperature) of
             their completions' silhouette IoUs.
-        weight: the ranking loss's weight beside the dense (or oracle) loss of the same states.
+        weight: the ranking loss's weight.
+        dense: the weight of the dense (or oracle) loss in the epochs of expert-iteration rounds
+            (1 as in the supervised rounds; 0 learns the ranking alone, which did best on
+            held-out chaos objects, README).
         epochs: passes over the aggregated data after each round.
     """
 
@@ -250,6 +253,7 @@ class ExitConfig:
     k: int = 5
     temperature: float = 0.01
     weight: float = 1.0
+    dense: float = 1.0
     epochs: int = 2
 
     def __post_init__(self) -> None:
@@ -258,8 +262,9 @@ class ExitConfig:
                              f"{self.rounds}, {self.epochs} and {self.objects}")
         if self.k < 2:
             raise ValueError(f"exit.k must be >= 2 (a ranking needs two candidates), got {self.k}")
-        if self.temperature <= 0 or self.weight < 0:
-            raise ValueError(f"exit.temperature must be > 0 and exit.weight >= 0, got {self.temperature} and {self.weight}")
+        if self.temperature <= 0 or self.weight < 0 or self.dense < 0:
+            raise ValueError(f"exit.temperature must be > 0, exit.weight and exit.dense >= 0, got "
+                             f"{self.temperature}, {self.weight} and {self.dense}")
 
 
 @dataclass
@@ -269,8 +274,8 @@ class TrainConfig:
 
     ``precision`` "bf16" runs the network under bfloat16 autocast (see :mod:`mrchaos.learn.precision`);
     ``init_from`` starts the network from a checkpoint's weights (a shipped name, a run or a
-    file), e.g. PPO on top of a supervised policy. ``compile`` runs it through ``torch.compile`` (a C++ compiler on the machine; the first
-    iterations pay the compilation)."""
+    file), e.g. PPO on top of a supervised policy. ``compile`` runs it through ``torch.compile`` (a C++
+    compiler on the machine; the first iterations pay the compilation)."""
 
     name: str = "run"
     algo: str = "ppo"
@@ -298,7 +303,8 @@ class TrainConfig:
             raise ValueError(f"algo must be 'ppo' or 'bc', got {self.algo!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
-        if self.algo == "ppo" and self.optim.lr_final is not None and self.collector.total_frames <= 0 and self.collector.max_minutes <= 0:
+        no_budget = self.collector.total_frames <= 0 and self.collector.max_minutes <= 0
+        if self.algo == "ppo" and self.optim.lr_final is not None and no_budget:
             raise ValueError("optim.lr_final anneals over the run's budget: set collector.total_frames or "
                              "collector.max_minutes")
         if self.exit.rounds and self.algo != "bc":
@@ -366,9 +372,9 @@ def upgrade_config_dict(data: dict) -> dict:
 
     Old flat keys (``env.view_extent``) become nested ones (``env.view.extent``); an old
     ``task.chaos: 0.5`` or ``task.cache: 1.0`` (mix weights, numbers) are told from the new
-    ``task.chaos`` and ``task.cache`` groups (mappings) by their type. A config of an old release that names no task preset gets the
-    one whose piece sets hold its ``env.piece_set``. The old ``logger.rerun`` switch becomes
-    ``logger.backends``.
+    ``task.chaos`` and ``task.cache`` groups (mappings) by their type. A config of an old release that
+    names no task preset gets the one whose piece sets hold its ``env.piece_set``. The old
+    ``logger.rerun`` switch becomes ``logger.backends``.
     """
     data = copy.deepcopy(data)
     old_task = isinstance(data.get("task"), dict) and "preset" not in data["task"]
@@ -445,7 +451,7 @@ def _coerce(value: Any, t: Any, where: str) -> Any:
         if args and args[-1] is not Ellipsis and len(value) != len(args):
             raise ConfigError(f"{where}: expected {len(args)} values, got {value!r}")
         types_ = [args[0]] * len(value) if args and args[-1] is Ellipsis else list(args) or [Any] * len(value)
-        return tuple(_coerce(v, t_, where) for v, t_ in zip(value, types_))
+        return tuple(_coerce(v, t_, where) for v, t_ in zip(value, types_, strict=True))
     if t is Any:
         return value
     if t is bool:

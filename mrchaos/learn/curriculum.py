@@ -86,7 +86,8 @@ class CurriculumTransform(Transform):
         return tensordict_reset
 
     def update(self, iteration: int, mean_reward: float) -> bool:
-        """Record one iteration's stage-1 mean reward; switch to stage 2 when it plateaus. Returns True on the switch."""
+        """Record one iteration's stage-1 mean reward; switch to stage 2 when it plateaus. Returns True on
+        the switch."""
         if not self.is_local or self.stages != "both":
             return False
         self.history.append(float(mean_reward))

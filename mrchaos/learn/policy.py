@@ -77,7 +77,8 @@ class PolicyConfig:
         if self.mode_window < 1 or self.mode_window % 2 == 0:
             raise ValueError(f"policy.mode_window must be odd and >= 1, got {self.mode_window}")
         if self.name != "spatial" and self.mode_window != 1:
-            raise ValueError(f"policy.mode_window needs the spatial policy (one score per grid action), got {self.name!r}")
+            raise ValueError(f"policy.mode_window needs the spatial policy (one score per grid action), got "
+                             f"{self.name!r}")
 
 
 class FactorisedCategorical(Distribution):
@@ -397,7 +398,8 @@ def build_actor_critic(cfg: PolicyConfig, grid: ActionGrid, view: View, action_s
     size = view.size
     if cfg.name == "paper":
         common = TensorDictModule(PaperTrunk(cfg, size), in_keys=["observation"], out_keys=["hidden"])
-        head = TensorDictModule(PaperHeads(cfg.hidden, grid), in_keys=["hidden"], out_keys=["logits_x", "logits_y", "logits_t"])
+        head = TensorDictModule(PaperHeads(cfg.hidden, grid), in_keys=["hidden"],
+                                out_keys=["logits_x", "logits_y", "logits_t"])
         actor = ProbabilisticActor(
             head, in_keys=["logits_x", "logits_y", "logits_t"], out_keys=["action"], spec=action_spec,
             distribution_class=FactorisedCategorical, return_log_prob=True,
@@ -406,7 +408,8 @@ def build_actor_critic(cfg: PolicyConfig, grid: ActionGrid, view: View, action_s
     else:
         trunk = SpatialTrunk(cfg, size).to(memory_format=torch.channels_last)
         common = TensorDictModule(trunk, in_keys=["observation"], out_keys=["features", "hidden"])
-        head = TensorDictModule(SpatialHead(trunk.out_channels, trunk.cells, grid, view, cfg.upsample), in_keys=["features"], out_keys=["logits"])
+        head = TensorDictModule(SpatialHead(trunk.out_channels, trunk.cells, grid, view, cfg.upsample),
+                                in_keys=["features"], out_keys=["logits"])
         actor = ProbabilisticActor(
             head, in_keys=["logits"], out_keys=["action"], spec=action_spec,
             distribution_class=GridCategorical, distribution_kwargs={"window": cfg.mode_window}, return_log_prob=True,

@@ -81,7 +81,7 @@ class RerunLogger(Logger):
         actions (W, 3) grid indices, rewards (W,)."""
         rr.set_time("iteration", sequence=int(step), recording=self.experiment)
         size = observations.shape[-1]
-        for i, (obs, act, rew) in enumerate(zip(observations, actions, rewards)):
+        for i, (obs, act, rew) in enumerate(zip(observations, actions, rewards, strict=True)):
             base = f"worlds/{i}"
             rr.log(f"{base}/silhouette", rr.Image(obs[0]), recording=self.experiment)
             rr.log(f"{base}/view", rr.Image(obs[1]), recording=self.experiment)

@@ -101,7 +101,7 @@ def build_scene_xml(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view:
         # named after the piece. Mass is shared by area.
         areas = np.array([polygon_area(q) for q in p.parts])
         geoms = []
-        for j, (part, a) in enumerate(zip(p.parts, areas)):
+        for j, (part, a) in enumerate(zip(p.parts, areas, strict=True)):
             name = p.name if j == 0 else f"{p.name}_part{j}"
             meshes.append(f'    <mesh name="{name}" vertex="{_fmt(_prism_vertices(part, p.thickness))}"/>')
             geoms.append(f'      <geom name="{name}" class="collision" type="mesh" mesh="{name}" '
@@ -120,7 +120,8 @@ def build_scene_xml(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view:
     # Perspective camera of the reference: a 4:3 image whose centre crop is the observation.
     return f'''<mujoco model="mrchaos_{piece_set.name}">
   <compiler angle="radian" autolimits="true"/>
-  <option timestep="{cfg.timestep}" integrator="implicitfast" cone="elliptic" impratio="10" sleep_tolerance="{cfg.sleep_tolerance}">
+  <option timestep="{cfg.timestep}" integrator="implicitfast" cone="elliptic" impratio="10"
+          sleep_tolerance="{cfg.sleep_tolerance}">
     <flag sleep="enable"/>
   </option>
   <visual>
@@ -142,13 +143,15 @@ def build_scene_xml(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view:
   </asset>
   <worldbody>
     <light name="top" pos="0 0 1.5" dir="0 0 -1" directional="true"/>
-    <geom name="table" class="collision" type="box" size="0.6 0.45 0.02" pos="0.15 0 -0.02" material="table" group="0" contype="1" conaffinity="1"/>
+    <geom name="table" class="collision" type="box" size="0.6 0.45 0.02" pos="0.15 0 -0.02" material="table"
+          group="0" contype="1" conaffinity="1"/>
     <site name="workspace_centre" pos="0 0 0" size="0.003"/>
     <site name="view_corner_min" pos="{-half:.6g} {-half:.6g} 0" size="0.002"/>
     <site name="view_corner_max" pos="{half:.6g} {half:.6g} 0" size="0.002"/>
     <site name="staging_area" pos="{cfg.staging_x:.6g} 0 0" size="0.003"/>
     <camera name="overhead" pos="0 0 {CAMERA_HEIGHT}" xyaxes="1 0 0 0 1 0" fovy="{CAMERA_FOVY}"/>
-    <camera name="overhead_ortho" pos="0 0 {CAMERA_HEIGHT}" xyaxes="1 0 0 0 1 0" projection="orthographic" fovy="{view.extent:.6g}"/>
+    <camera name="overhead_ortho" pos="0 0 {CAMERA_HEIGHT}" xyaxes="1 0 0 0 1 0" projection="orthographic"
+            fovy="{view.extent:.6g}"/>
 {chr(10).join(bodies)}
   </worldbody>
   <keyframe>
@@ -178,7 +181,8 @@ def build_model(
     model = spec.compile()
     arm = Robot(model, robot)
     # Elbow up, wrist down: the branch of the UR's usual home posture.
-    q, ok = arm.solve(np.array([robot.ready]), np.array([0.0]), np.array([[0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]]))
+    q, ok = arm.solve(np.array([robot.ready]), np.array([0.0]),
+                      np.array([[0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]]))
     if not ok[0]:
         raise ValueError(f"robot.ready {robot.ready} is out of the arm's reach from robot.mount {robot.mount}")
     key = spec.key("home")

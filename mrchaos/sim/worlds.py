@@ -201,7 +201,7 @@ class Worlds:
             parts = np.where(over[..., None, None], self._parts_mirrored[None], parts)
         flat = rigid_transform(parts, np.stack([q[..., 0], q[..., 1], yaw], -1))  # (R, Q, V, 2)
         fp = np.concatenate([flat, np.repeat(flat[..., -1:, :], self._v, axis=2)], 2)
-        for r, i in zip(*np.nonzero(tilted)):
+        for r, i in zip(*np.nonzero(tilted), strict=True):
             hull = shapely.MultiPoint(verts[r, i, :, :2]).convex_hull
             pts = np.asarray(hull.exterior.coords)[:-1] if hull.geom_type == "Polygon" else verts[r, i, :, :2]
             pts = pts[: 2 * self._v]

@@ -213,7 +213,8 @@ class ChaosCache:
             the flip have no such array).
     """
 
-    def __init__(self, poses: np.ndarray, modes: np.ndarray, piece_set: str, mirrored: np.ndarray | None = None) -> None:
+    def __init__(self, poses: np.ndarray, modes: np.ndarray, piece_set: str,
+                 mirrored: np.ndarray | None = None) -> None:
         self.poses = np.asarray(poses, dtype=np.float64)
         self.modes = np.asarray(modes, dtype=np.int8)
         self.piece_set = piece_set

@@ -108,9 +108,10 @@ class TargetSampler:
         flip: the env can turn pieces over, so figures that need a mirrored piece are used, not skipped.
     """
 
-    def __init__(self, piece_set: PieceSet, cfg: TaskConfig = TaskConfig(), figures: list[Figure] | None = None,
+    def __init__(self, piece_set: PieceSet, cfg: TaskConfig | None = None, figures: list[Figure] | None = None,
                  view: View = View(), flip: bool = False):
         self.piece_set = piece_set
+        cfg = cfg if cfg is not None else TaskConfig()  # a fresh default: the sampler keeps and reads it
         self.cfg = cfg
         self.view = view
         mix = cfg.mix
