@@ -122,7 +122,7 @@ def test_oracle_on_mrchaos104(mrchaos104):
     for f in ("H-Normal", "H-Hard", "H-Fiendish"):
         m = torch.as_tensor(fam == f)
         print(f"grid oracle {f}: Final {final_g[m].mean():.3f} Rela {rela_g[m].mean():.3f}")
-        # The grid's ceiling (README): 0.94-0.96; far below means placement is broken.
+        # The grid's ceiling (docs/benchmark.md, Oracle ceilings): 0.94-0.96; far below means placement is broken.
         assert 0.92 < final_g[m].mean() < 0.99 and 0.92 < rela_g[m].mean() < 0.99
 
 

@@ -35,7 +35,7 @@ def test_figure_silhouette_area_is_one_hundred_cm2(seed, angle_step):
     polys = rigid_transform(ps.padded_outlines()[None], poses)
     area = (rasterize(polys).ids >= 0).sum((1, 2)).numpy() * PX2
     # Aggregated over scenes the rasteriser is unbiased to well within 1 %; one scene can
-    # be off by a few percent when many edges sit at 45 degrees (see README, Images).
+    # be off by a few percent when many edges sit at 45 degrees (see docs/concepts.md, Images).
     assert abs(area.mean() - 0.01) / 0.01 < 0.01
     assert np.abs(area - 0.01).max() / 0.01 < 0.08
 

@@ -49,6 +49,7 @@ from mrchaos.env.metrics import (
 )
 from mrchaos.env.observation import ObservationConfig, silhouette_image, view_image
 from mrchaos.env.rewards import REWARD_TERMS, RewardConfig, reward_terms
+from mrchaos.figures.figure import Figure
 from mrchaos.figures.pieces import get_piece_set
 from mrchaos.sim.flipper import FlipperConfig
 from mrchaos.sim.robot import RobotConfig
@@ -148,7 +149,8 @@ class TangramEnv(EnvBase):
 
     batch_locked = True
 
-    def __init__(self, cfg: EnvConfig | None = None, seed: int | None = 0, figures=None, device: str = "cpu"):
+    def __init__(self, cfg: EnvConfig | None = None, seed: int | None = 0, figures: list[Figure] | None = None,
+                 device: str = "cpu"):
         cfg = cfg if cfg is not None else EnvConfig()  # a fresh default: the env keeps and reads it
         super().__init__(device=device, batch_size=torch.Size([cfg.num_worlds]))
         self.cfg = cfg

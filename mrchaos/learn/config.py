@@ -244,7 +244,7 @@ class ExitConfig:
         weight: the ranking loss's weight.
         dense: the weight of the dense (or oracle) loss in the epochs of expert-iteration rounds
             (1 as in the supervised rounds; 0 learns the ranking alone, which did best on
-            held-out chaos objects, README).
+            held-out chaos objects, docs/training.md).
         epochs: passes over the aggregated data after each round.
     """
 
