@@ -1,6 +1,7 @@
 import subprocess
 import sys
 
+import pytest
 from PIL import Image
 
 from mrchaos.cli.figures import main
@@ -34,3 +35,12 @@ def test_bad_input_exit_codes(tmp_path, capsys):
 def test_console_script_installed():
     r = subprocess.run([sys.executable, "-m", "mrchaos.cli.figures", "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "sheet" in r.stdout
+
+
+def test_help_names_every_registered_piece_set(capsys):
+    from mrchaos.figures.pieces import piece_set_names
+
+    with pytest.raises(SystemExit):
+        main(["chaos", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert all(name in text for name in piece_set_names())

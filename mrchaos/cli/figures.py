@@ -109,6 +109,8 @@ def cmd_chaos(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from mrchaos.figures.pieces import piece_set_names
+
     p = argparse.ArgumentParser(prog="mrchaos-figures", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
     fig_help = "interchange JSON, KILOGRAM .svg or folder of .svg (repeatable; default: built-in library)"
@@ -139,15 +141,19 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--mode", default="mix", choices=["scatter", "attract", "mix"])
     s.add_argument("--piece-set", default="tangram7",
-                   help="a registered piece set (tangram7, cutlery, soda3..soda6, or your own)")
+                   help=f"a registered piece set ({', '.join(piece_set_names())}, or your own)")
     s.add_argument("--out", required=True)
     s.set_defaults(fn=cmd_chaos)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return run_command("mrchaos-figures", lambda: args.fn(args), dependencies=_FIGURE_STACK)
+    # The parser is built after the dependencies import: its help reads the piece-set registry.
+    def body() -> int:
+        args = build_parser().parse_args(argv)
+        return args.fn(args)
+
+    return run_command("mrchaos-figures", body, dependencies=_FIGURE_STACK)
 
 
 if __name__ == "__main__":
