@@ -25,8 +25,10 @@ from mrchaos.tasks.sampler import CacheConfig, TaskConfig
 
 def run(n: int, policy: str, episodes: int, threads: int) -> dict:
     torch.set_num_threads(threads)
-    env = TangramEnv(EnvConfig(num_worlds=n, physics=PhysicsConfig(nthread=threads),
-                               task=TaskConfig(cache=CacheConfig(size=512))), seed=0)
+    env = TangramEnv(
+        EnvConfig(num_worlds=n, physics=PhysicsConfig(nthread=threads), task=TaskConfig(cache=CacheConfig(size=512))),
+        seed=0,
+    )
     g = torch.Generator().manual_seed(0)
     nvec = torch.tensor(env.grid.nvec)
     td = env.reset()

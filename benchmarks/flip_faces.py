@@ -54,8 +54,10 @@ def main() -> None:
     args = ap.parse_args()
     for path in args.figures:
         over, n_over, up, n_up = face_counts(path, args.policy)
-        print(f"{path}: {args.policy} turns a chiral piece over for {over} of {n_over} turned-over targets "
-              f"and keeps it face up for {up} of {n_up} face-up targets")
+        print(
+            f"{path}: {args.policy} turns a chiral piece over for {over} of {n_over} turned-over targets "
+            f"and keeps it face up for {up} of {n_up} face-up targets"
+        )
 
 
 if __name__ == "__main__":

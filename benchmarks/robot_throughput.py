@@ -69,8 +69,10 @@ def main() -> None:
         tele = sum(_assemble(teleport, tg)[0] for tg in targets[1:])
         placements = n * len(ps) * args.episodes
         sim = robot.executor.simulated_seconds / (n * len(ps) * (args.episodes + 1))
-        print(f"{n:>4} {placements / wall:>13.2f} {placements / tele:>11.0f} {sim:>16.2f} "
-              f"{sim * placements / wall:>12.2f}  {fails}")
+        print(
+            f"{n:>4} {placements / wall:>13.2f} {placements / tele:>11.0f} {sim:>16.2f} "
+            f"{sim * placements / wall:>12.2f}  {fails}"
+        )
     if args.flips:
         _flips(ps, args.flips, args.flip_worlds, args.threads)
     print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
@@ -104,12 +106,16 @@ def _flips(ps, total: int, n: int, threads: int) -> None:
     good = ~failed & (dist < 0.002) & (angle < math.radians(2.0))
     fin = np.isfinite(dist)
     batches = math.ceil(total / n)
-    print(f"flips: {good.sum()} of {total} land flat, mirrored, within 2 mm and 2 deg ({failed.sum()} flagged); "
-          f"error median {1e3 * np.median(dist[fin]):.2f} mm, max {1e3 * dist[fin].max():.2f} mm, "
-          f"{np.degrees(angle[fin].max()):.2f} deg")
-    print(f"a flipped placement: {wall / batches:.2f} s wall per call of {n} worlds against "
-          f"{plain_wall / batches:.2f} s "
-          f"for the same placement face up; {sim / n:.1f} simulated s per world (last call)")
+    print(
+        f"flips: {good.sum()} of {total} land flat, mirrored, within 2 mm and 2 deg ({failed.sum()} flagged); "
+        f"error median {1e3 * np.median(dist[fin]):.2f} mm, max {1e3 * dist[fin].max():.2f} mm, "
+        f"{np.degrees(angle[fin].max()):.2f} deg"
+    )
+    print(
+        f"a flipped placement: {wall / batches:.2f} s wall per call of {n} worlds against "
+        f"{plain_wall / batches:.2f} s "
+        f"for the same placement face up; {sim / n:.1f} simulated s per world (last call)"
+    )
 
 
 if __name__ == "__main__":

@@ -41,19 +41,32 @@ VARIANTS = {
 
 
 def _config(tmp: str, overrides: list[str]):
-    return load_config(ROOT / "conf" / "full.yaml", [
-        # No time budget here, so no learning-rate anneal over one (the rate does not change the speed).
-        f"runs_dir={tmp}", "name=bench", "collector.max_minutes=0", "optim.lr_final=null", "logger.backends=[]",
-        "logger.progress=false", "checkpoint.every=100000", "task.cache.path=null", "task.cache.size=1024",
-        *overrides,
-    ])
+    return load_config(
+        ROOT / "conf" / "full.yaml",
+        [
+            # No time budget here, so no learning-rate anneal over one (the rate does not change the speed).
+            f"runs_dir={tmp}",
+            "name=bench",
+            "collector.max_minutes=0",
+            "optim.lr_final=null",
+            "logger.backends=[]",
+            "logger.progress=false",
+            "checkpoint.every=100000",
+            "task.cache.path=null",
+            "task.cache.size=1024",
+            *overrides,
+        ],
+    )
 
 
 def collection_throughput(kind: str, workers: int, threads: int, batches: int, overrides: list[str]) -> float:
     """World-steps per second of collection alone (after one warm-up batch) with one collector kind."""
     with tempfile.TemporaryDirectory() as tmp:
-        extra = [f"threads={threads}", f"env.physics.nthread={threads}"] if kind == "sync" else [
-            f"collector.workers={workers}", "collector.worker_threads=1", "threads=1"]
+        extra = (
+            [f"threads={threads}", f"env.physics.nthread={threads}"]
+            if kind == "sync"
+            else [f"collector.workers={workers}", "collector.worker_threads=1", "threads=1"]
+        )
         cfg = _config(tmp, [f"collector.kind={kind}", "collector.total_frames=-1", *extra, *overrides])
         trainer = Trainer(cfg, Path(tmp) / "bench")
         try:
@@ -77,8 +90,13 @@ def main() -> None:
     # choices: a key=value written after --variants or --collectors is refused at once, not
     # taken for a name and found wrong minutes later.
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
-    ap.add_argument("--collectors", nargs="*", default=list(COLLECTOR_KINDS), choices=COLLECTOR_KINDS,
-                    help="collector kinds to time collection alone with (none: skip)")
+    ap.add_argument(
+        "--collectors",
+        nargs="*",
+        default=list(COLLECTOR_KINDS),
+        choices=COLLECTOR_KINDS,
+        help="collector kinds to time collection alone with (none: skip)",
+    )
     ap.add_argument("--workers", type=int, default=2, help="workers of multisync and ray")
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args()
@@ -86,10 +104,16 @@ def main() -> None:
     for name in args.variants:
         with tempfile.TemporaryDirectory() as tmp:
             frames = 4096 * (args.iterations + 1)
-            cfg = _config(tmp, VARIANTS[name] + [
-                f"threads={args.threads}", f"env.physics.nthread={args.threads}", f"collector.total_frames={frames}",
-                *args.overrides,
-            ])
+            cfg = _config(
+                tmp,
+                VARIANTS[name]
+                + [
+                    f"threads={args.threads}",
+                    f"env.physics.nthread={args.threads}",
+                    f"collector.total_frames={frames}",
+                    *args.overrides,
+                ],
+            )
             trainer = Trainer(cfg, Path(tmp) / "bench")
             trainer.run()
             with open(Path(tmp) / "bench" / "metrics.csv") as f:
@@ -97,8 +121,10 @@ def main() -> None:
             c = sum(float(r["collect_s"]) for r in rows)
             u = sum(float(r["update_s"]) for r in rows)
             n = sum(4096 for _ in rows)
-            print(f"{name:>14} {count_parameters(trainer.actor_critic):>9,} {n / (c + u):>8.0f} "
-                  f"{c / len(rows):>7.2f}s {u / len(rows):>7.2f}s")
+            print(
+                f"{name:>14} {count_parameters(trainer.actor_critic):>9,} {n / (c + u):>8.0f} "
+                f"{c / len(rows):>7.2f}s {u / len(rows):>7.2f}s"
+            )
     if args.collectors:
         print(f"\ncollection alone, spatial policy, {args.iterations} batches of 4096 world-steps:")
         print(f"{'collector':>14} {'workers':>8} {'steps/s':>8}")

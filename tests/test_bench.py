@@ -62,8 +62,22 @@ def test_bench_metrics_match_an_independent_computation(policy):
 def test_bench_cli_outputs(tmp_path, capsys):
     out = tmp_path / "bench"
     rec = tmp_path / "rec.rrd"
-    args = ["--families", "random,h-hard", "--policy", "oracle", "--policy", "random", "--random-objects", "8",
-            "--out", str(out), "--record", str(rec), "--worlds", "8"]
+    args = [
+        "--families",
+        "random,h-hard",
+        "--policy",
+        "oracle",
+        "--policy",
+        "random",
+        "--random-objects",
+        "8",
+        "--out",
+        str(out),
+        "--record",
+        str(rec),
+        "--worlds",
+        "8",
+    ]
     if MRCHAOS104.exists():
         args += ["--figures", str(MRCHAOS104)]
     assert bench_main(args) == 0
@@ -124,11 +138,13 @@ def test_mode_window_overrides_the_checkpoint_and_lookahead_of_one_stays_greedy(
     env = bench.make_env(spec)
     _, poses, mirrored, _ = bench.targets["Random"][0]
     windowed = evaluate(env, poses, bench.actor(spec, env), mirrored=mirrored)
-    plain = evaluate(env, poses, Bench(None, ["Random"], random_objects=1, num_worlds=12).actor(spec, env),
-                     mirrored=mirrored)
+    plain = evaluate(
+        env, poses, Bench(None, ["Random"], random_objects=1, num_worlds=12).actor(spec, env), mirrored=mirrored
+    )
     assert not np.array_equal(windowed.step_coverage, plain.step_coverage)  # the override reached the policy
-    one = evaluate(env, poses, Lookahead(bench.policy_operator(spec, env), 1).actor(env, poses, mirrored),
-                   mirrored=mirrored)
+    one = evaluate(
+        env, poses, Lookahead(bench.policy_operator(spec, env), 1).actor(env, poses, mirrored), mirrored=mirrored
+    )
     assert np.array_equal(one.step_coverage, windowed.step_coverage)
     res = bench.run([spec, resolve_policy("oracle")])
     assert res["policies"]["mrchaos-dense-ppo"]["label"].endswith("mode window 5")
@@ -167,8 +183,23 @@ def test_bench_bad_input(tmp_path, capsys):
 def test_invalid_figures_are_skipped_and_counted(tmp_path, capsys):
     good = {"id": "ok", "pieces": []}
     (tmp_path / "set.json").write_text(json.dumps({"figures": [good]}))
-    assert bench_main(["--policy", "oracle", "--figures", str(tmp_path / "set.json"), "--random-objects", "2",
-                       "--out", str(tmp_path / "o"), "--worlds", "2"]) == 0
+    assert (
+        bench_main(
+            [
+                "--policy",
+                "oracle",
+                "--figures",
+                str(tmp_path / "set.json"),
+                "--random-objects",
+                "2",
+                "--out",
+                str(tmp_path / "o"),
+                "--worlds",
+                "2",
+            ]
+        )
+        == 0
+    )
     captured = capsys.readouterr()
     assert "skipped ok" in captured.err and "1 figures skipped" in captured.out
     res = json.loads((tmp_path / "o" / "results.json").read_text())
@@ -177,8 +208,25 @@ def test_invalid_figures_are_skipped_and_counted(tmp_path, capsys):
 
 def test_shipped_policy_loads_and_beats_random(tmp_path):
     out = tmp_path / "o"
-    assert bench_main(["--families", "random", "--policy", "mrchaos", "--policy", "random",
-                       "--random-objects", "16", "--out", str(out), "--worlds", "16"]) == 0
+    assert (
+        bench_main(
+            [
+                "--families",
+                "random",
+                "--policy",
+                "mrchaos",
+                "--policy",
+                "random",
+                "--random-objects",
+                "16",
+                "--out",
+                str(out),
+                "--worlds",
+                "16",
+            ]
+        )
+        == 0
+    )
     res = json.loads((out / "results.json").read_text())["policies"]
     final = {p: res[p]["families"]["Random"]["final"]["mean"] for p in ("mrchaos", "random")}
     assert final["mrchaos"] > final["random"] + 0.3
@@ -204,8 +252,26 @@ def test_bench_robot_placement_films_and_perturbs(tmp_path, capsys, rendering):
     from PIL import Image
 
     out, rec, video = tmp_path / "bench", tmp_path / "robot.rrd", tmp_path / "episode.gif"
-    args = ["--families", "random", "--policy", "oracle", "--random-objects", "2", "--worlds", "2",
-            "--placement", "robot", "--perturb", "3", "--out", str(out), "--record", str(rec), "--video", str(video)]
+    args = [
+        "--families",
+        "random",
+        "--policy",
+        "oracle",
+        "--random-objects",
+        "2",
+        "--worlds",
+        "2",
+        "--placement",
+        "robot",
+        "--perturb",
+        "3",
+        "--out",
+        str(out),
+        "--record",
+        str(rec),
+        "--video",
+        str(video),
+    ]
     assert bench_main(args) == 0
     text = capsys.readouterr().out
     assert "robot failures per placement" in text and "push after step 3" in text
@@ -248,9 +314,29 @@ def test_every_shipped_policy_loads_by_name_and_fits_its_task():
 
 def test_supervised_chaos_policies_beat_the_ppo_policy_on_random(tmp_path):
     out = tmp_path / "s"
-    assert bench_main(["--families", "random", "--policy", "mrchaos-dense", "--policy", "mrchaos-bc-chaos",
-                       "--policy", "mrchaos-dense-ppo", "--policy", "mrchaos", "--random-objects", "32",
-                       "--out", str(out), "--worlds", "32"]) == 0
+    assert (
+        bench_main(
+            [
+                "--families",
+                "random",
+                "--policy",
+                "mrchaos-dense",
+                "--policy",
+                "mrchaos-bc-chaos",
+                "--policy",
+                "mrchaos-dense-ppo",
+                "--policy",
+                "mrchaos",
+                "--random-objects",
+                "32",
+                "--out",
+                str(out),
+                "--worlds",
+                "32",
+            ]
+        )
+        == 0
+    )
     res = json.loads((out / "results.json").read_text())["policies"]
     final = {k: v["families"]["Random"]["final"]["mean"] for k, v in res.items()}
     supervised = min(final["mrchaos-dense"], final["mrchaos-bc-chaos"], final["mrchaos-dense-ppo"])

@@ -115,8 +115,16 @@ def test_tensorboard_run_is_read_back(tmp_path):
     require_extra("tensorboard", "tensorboard")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    rc = train_main([str(SMOKE), f"runs_dir={tmp_path}", "logger.backends=[tensorboard,csv]",
-                     "collector.total_frames=512", "--eval", "0"])
+    rc = train_main(
+        [
+            str(SMOKE),
+            f"runs_dir={tmp_path}",
+            "logger.backends=[tensorboard,csv]",
+            "collector.total_frames=512",
+            "--eval",
+            "0",
+        ]
+    )
     assert rc == 0
     rows = _rows(tmp_path / "smoke")
     acc = EventAccumulator(str(tmp_path / "smoke" / "tensorboard"))
@@ -134,8 +142,17 @@ def test_ray_smoke_run_passes_the_curriculum_switch_and_checkpoints(tmp_path):
     them (their episodes grow from one step to seven)."""
     ray = require_extra("ray", "ray")
     try:
-        rc = train_main([str(SMOKE), f"runs_dir={tmp_path}", "collector.kind=ray", "collector.workers=2",
-                         "collector.total_frames=1280", "--eval", "0"])
+        rc = train_main(
+            [
+                str(SMOKE),
+                f"runs_dir={tmp_path}",
+                "collector.kind=ray",
+                "collector.workers=2",
+                "collector.total_frames=1280",
+                "--eval",
+                "0",
+            ]
+        )
     finally:
         ray.shutdown()
     assert rc == 0

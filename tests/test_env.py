@@ -158,8 +158,7 @@ def test_free_placement_skips_physics():
 
 def test_preassembled_and_horizon():
     env = make(3, seed=2)
-    td = env.reset(TensorDict(preassembled=torch.tensor([0, 3, 6]), horizon=torch.tensor([7, 1, 1]),
-                              batch_size=[3]))
+    td = env.reset(TensorDict(preassembled=torch.tensor([0, 3, 6]), horizon=torch.tensor([7, 1, 1]), batch_size=[3]))
     assert env.next_piece.tolist() == [0, 3, 6]
     cov = td["info", "coverage"]
     assert (cov[1, :3] > 0.97).all() and (cov[2, :6] > 0.97).all() and (cov[0] == 0).all()
@@ -184,8 +183,17 @@ def test_levels_view_sees_stacking():
 
 
 def test_reward_switches():
-    target = np.array([[-0.05, 0.05, 0.0], [0.05, 0.05, 0.0], [-0.05, -0.05, 0.0], [0.05, -0.05, 0.0],
-                       [0.0, 0.0, 0.0], [-0.09, 0.0, 0.0], [0.09, 0.0, 0.0]])
+    target = np.array(
+        [
+            [-0.05, 0.05, 0.0],
+            [0.05, 0.05, 0.0],
+            [-0.05, -0.05, 0.0],
+            [0.05, -0.05, 0.0],
+            [0.0, 0.0, 0.0],
+            [-0.09, 0.0, 0.0],
+            [0.09, 0.0, 0.0],
+        ]
+    )
     poses = np.stack([target, target])
     for cfg, expect in [({}, None), ({"shaping": True}, "shaped"), ({"angle_gate": True}, "gated")]:
         env = make(2, reward=RewardConfig(**cfg))
@@ -224,8 +232,11 @@ def test_action_noise_and_camera_jitter_switches():
     target[:, :, 0] = np.linspace(-0.09, 0.09, 7)
     a = torch.tensor([[25, 25, 4], [10, 30, 2]])
     outs = {}
-    for name, kw in [("plain", {}), ("noise", {"action_xy": 0.003, "action_theta": 0.05}),
-                     ("jitter", {"camera_jitter": 0.004})]:
+    for name, kw in [
+        ("plain", {}),
+        ("noise", {"action_xy": 0.003, "action_theta": 0.05}),
+        ("jitter", {"camera_jitter": 0.004}),
+    ]:
         env = make(2, seed=5, noise=NoiseConfig(**kw))
         env.reset_to(target)
         out = env.step(TensorDict(action=a, batch_size=[2]))["next"]

@@ -43,8 +43,10 @@ def test_a_label_names_the_candidate_the_planner_itself_ranked_first():
     for row in (0, n * 3 + 1, n * (p - 1) + 2):
         tt, ii = int(t[row]), int(i[row])
         for c in range(3):
-            td = env.reset_to(np.repeat(poses[ii : ii + 1], env.batch_size[0], 0),
-                              np.repeat(mirrored[ii : ii + 1], env.batch_size[0], 0))
+            td = env.reset_to(
+                np.repeat(poses[ii : ii + 1], env.batch_size[0], 0),
+                np.repeat(mirrored[ii : ii + 1], env.batch_size[0], 0),
+            )
             for s in range(p):
                 if s < tt:
                     action = torch.as_tensor(chosen[ii, s]).expand(env.batch_size[0], 3)
@@ -61,10 +63,26 @@ def test_a_label_names_the_candidate_the_planner_itself_ranked_first():
 
 
 def _exit_run(tmp_path, *extra):
-    return train_main([str(ROOT / "conf" / "exit.yaml"), f"runs_dir={tmp_path}", "init_from=null", "bc.epochs=2",
-                       "bc.objects=24", "exit.rounds=2", "exit.objects=8", "exit.k=3", "exit.epochs=3",
-                       "env.num_worlds=24", "optim.lr=1e-3", "bc.minibatch_size=32", "exit.weight=5", "exit.dense=1",
-                       *TINY_NET, *extra])
+    return train_main(
+        [
+            str(ROOT / "conf" / "exit.yaml"),
+            f"runs_dir={tmp_path}",
+            "init_from=null",
+            "bc.epochs=2",
+            "bc.objects=24",
+            "exit.rounds=2",
+            "exit.objects=8",
+            "exit.k=3",
+            "exit.epochs=3",
+            "env.num_worlds=24",
+            "optim.lr=1e-3",
+            "bc.minibatch_size=32",
+            "exit.weight=5",
+            "exit.dense=1",
+            *TINY_NET,
+            *extra,
+        ]
+    )
 
 
 def test_a_seconds_long_distillation_run_lowers_its_loss_and_checkpoints_every_round(tmp_path):
@@ -106,8 +124,16 @@ def test_a_seconds_long_distillation_run_lowers_its_loss_and_checkpoints_every_r
 
 
 def test_a_supervised_run_killed_after_its_first_epoch_resumes_from_it(tmp_path, monkeypatch):
-    args = [str(ROOT / "conf" / "dense.yaml"), "bc.objects=16", "bc.epochs=2", "bc.dagger_rounds=1",
-            "bc.dagger_objects=8", "bc.dagger_epochs=2", "env.num_worlds=16", *TINY_NET]
+    args = [
+        str(ROOT / "conf" / "dense.yaml"),
+        "bc.objects=16",
+        "bc.epochs=2",
+        "bc.dagger_rounds=1",
+        "bc.dagger_objects=8",
+        "bc.dagger_epochs=2",
+        "env.num_worlds=16",
+        *TINY_NET,
+    ]
     assert train_main([*args, f"runs_dir={tmp_path / 'whole'}"]) == 0
 
     fit = bc.SupervisedRun._fit_epoch

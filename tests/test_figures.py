@@ -47,8 +47,18 @@ def _write(tmp_path, data, name="bad.json"):
 
 def _good_entry(fid="f"):
     ps = tangram7()
-    poses = np.array([[-0.05, 0.05, 0], [0.05, 0.05, 0], [-0.05, -0.05, 0], [0.05, -0.05, 0],
-                      [0.0, 0.0, 0], [-0.09, 0.0, 0], [0.09, 0.0, 0]], float)
+    poses = np.array(
+        [
+            [-0.05, 0.05, 0],
+            [0.05, 0.05, 0],
+            [-0.05, -0.05, 0],
+            [0.05, -0.05, 0],
+            [0.0, 0.0, 0],
+            [-0.09, 0.0, 0],
+            [0.09, 0.0, 0],
+        ],
+        float,
+    )
     poses[:, :2] *= 1.0
     f = Figure(fid, ps, poses)
     pieces = [{"piece": n, "vertices": f.piece_polygon(i).tolist()} for i, n in enumerate(ps.names)]
@@ -95,8 +105,9 @@ def test_the_good_entry_is_valid(tmp_path):
 def test_mirrored_parallelogram_is_flagged():
     ps = tangram7()
     par = ps.pieces[3]
-    polys = [rigid_transform(p.outline, np.array([0.3 * (i - 3) / 3, 0.0, 0.0])) * [0.3, 1]
-             for i, p in enumerate(ps.pieces)]
+    polys = [
+        rigid_transform(p.outline, np.array([0.3 * (i - 3) / 3, 0.0, 0.0])) * [0.3, 1] for i, p in enumerate(ps.pieces)
+    ]
     from mrchaos.figures.figure import figure_from_polygons
 
     polys = [rigid_transform(p.outline, np.array([0.0, 0.0, 0.0])) for p in ps.pieces]
@@ -129,7 +140,7 @@ def test_kilogram_samples_import(kilogram_dir):
 
 def test_kilogram_rejects_non_tangram(tmp_path):
     svg = tmp_path / "six.svg"
-    polys = "".join(f'<polygon points="{i*10},0 {i*10+5},0 {i*10},5"/>' for i in range(6))
+    polys = "".join(f'<polygon points="{i * 10},0 {i * 10 + 5},0 {i * 10},5"/>' for i in range(6))
     svg.write_text(f'<svg xmlns="http://www.w3.org/2000/svg">{polys}</svg>')
     with pytest.raises(FigureError, match="six.svg.*not a standard tangram: 6 polygons"):
         svg_to_figure(svg)
@@ -137,7 +148,7 @@ def test_kilogram_rejects_non_tangram(tmp_path):
     with pytest.raises(FigureError, match="malformed SVG"):
         svg_to_figure(svg)
     # Seven triangles: shapes do not match the tangram's.
-    polys = "".join(f'<polygon points="{i*10},0 {i*10+5},0 {i*10},5"/>' for i in range(7))
+    polys = "".join(f'<polygon points="{i * 10},0 {i * 10 + 5},0 {i * 10},5"/>' for i in range(7))
     svg.write_text(f'<svg xmlns="http://www.w3.org/2000/svg">{polys}</svg>')
     with pytest.raises(FigureError, match="not a standard tangram"):
         svg_to_figure(svg)
@@ -146,13 +157,26 @@ def test_kilogram_rejects_non_tangram(tmp_path):
 def test_kilogram_transforms_and_y_flip(tmp_path):
     """A figure written to SVG with a rotate+scale transform and y down imports back to the same shape."""
     ps = tangram7()
-    fig = Figure("t", ps, np.array([[-0.05, 0.05, 0], [0.05, 0.05, math.pi / 2], [-0.05, -0.05, 0.3],
-                                    [0.05, -0.05, 0.1], [0.0, 0.0, 0], [-0.09, 0.0, 1.0], [0.09, 0.0, 2.0]]))
+    fig = Figure(
+        "t",
+        ps,
+        np.array(
+            [
+                [-0.05, 0.05, 0],
+                [0.05, 0.05, math.pi / 2],
+                [-0.05, -0.05, 0.3],
+                [0.05, -0.05, 0.1],
+                [0.0, 0.0, 0],
+                [-0.09, 0.0, 1.0],
+                [0.09, 0.0, 2.0],
+            ]
+        ),
+    )
     body = ""
     for i in range(7):
         pts = fig.piece_polygon(i) * [1000, -1000]  # mm, y down
         pts = pts @ np.array([[0, -1], [1, 0]])  # rotate by -90 deg, undone by rotate(90) below
-        points = " ".join(f"{x/2:.6f},{y/2:.6f}" for x, y in pts)
+        points = " ".join(f"{x / 2:.6f},{y / 2:.6f}" for x, y in pts)
         body += '<g transform="scale(2)"><polygon transform="rotate(90)" points="' + points + '"/></g>'
     svg = tmp_path / "t.svg"
     svg.write_text(f'<svg xmlns="http://www.w3.org/2000/svg">{body}</svg>')
@@ -161,5 +185,6 @@ def test_kilogram_transforms_and_y_flip(tmp_path):
     centre = (allv.min(0) + allv.max(0)) / 2
     tw = ps.twin_matrix()
     for i in range(7):  # twins may trade places
-        assert any(np.allclose(back.piece_polygon(i), fig.piece_polygon(j) - centre, atol=1e-6)
-                   for j in np.flatnonzero(tw[i]))
+        assert any(
+            np.allclose(back.piece_polygon(i), fig.piece_polygon(j) - centre, atol=1e-6) for j in np.flatnonzero(tw[i])
+        )

@@ -165,8 +165,9 @@ def test_cache_keeps_faces_and_refuses_the_other_mirroring_rule(tmp_path):
     task = dataclasses.replace(TaskConfig(), cache=dataclasses.replace(TaskConfig().cache, path=str(path), size=16))
     with pytest.raises(ValueError, match="m.npz: chaos cache has mirrored pieces"):
         TangramEnv(EnvConfig(num_worlds=2, grid=FLIP, task=task), seed=0)
-    env = TangramEnv(EnvConfig(num_worlds=8, grid=FLIP, task=dataclasses.replace(
-        task, chaos=ChaosConfig(mirror_prob=0.5))), seed=0)
+    env = TangramEnv(
+        EnvConfig(num_worlds=8, grid=FLIP, task=dataclasses.replace(task, chaos=ChaosConfig(mirror_prob=0.5))), seed=0
+    )
     env.reset()
     # The cache's turned-over parallelograms reach the worlds' targets.
     assert env.oracle_targets().mirrored.dtype == bool
@@ -186,8 +187,10 @@ def test_turned_over_chaos_without_the_flip_is_refused_for_every_chaos_source(tm
     TangramEnv(EnvConfig(num_worlds=2, task=TaskConfig(mix=MixConfig(cache=0.0, figures=1.0), chaos=mirrored)), seed=0)
     # Both trainers, PPO and supervision from chaos, stop with the reason and a non-zero exit.
     for algo in ([], ["algo=bc", "bc.source=chaos", "bc.objects=4", "name=bc"]):
-        assert train_main([str(ROOT / "conf" / "smoke.yaml"), "task.chaos.mirror_prob=0.5", *algo,
-                           f"runs_dir={tmp_path}"]) == 2
+        assert (
+            train_main([str(ROOT / "conf" / "smoke.yaml"), "task.chaos.mirror_prob=0.5", *algo, f"runs_dir={tmp_path}"])
+            == 2
+        )
         assert "need env.grid.flip" in capsys.readouterr().err
 
 
@@ -200,8 +203,20 @@ def test_supervision_from_turned_over_chaos_is_refused_before_generating(tmp_pat
         raise AssertionError("chaos objects were generated before the flip check")
 
     monkeypatch.setattr(bc, "generate", never)
-    assert train_main([str(ROOT / "conf" / "smoke.yaml"), "task.chaos.mirror_prob=0.5", "algo=bc",
-                       "bc.source=chaos", "bc.objects=4", "name=bc", f"runs_dir={tmp_path}"]) == 2
+    assert (
+        train_main(
+            [
+                str(ROOT / "conf" / "smoke.yaml"),
+                "task.chaos.mirror_prob=0.5",
+                "algo=bc",
+                "bc.source=chaos",
+                "bc.objects=4",
+                "name=bc",
+                f"runs_dir={tmp_path}",
+            ]
+        )
+        == 2
+    )
     assert "need env.grid.flip" in capsys.readouterr().err
 
 
@@ -210,8 +225,10 @@ def test_policies_act_on_the_doubled_orientations():
 
     env = _env(3)
     td = env.reset()
-    for cfg in (PolicyConfig(name="spatial", pool=1, channels=[8, 8, 8], hidden=32),
-                PolicyConfig(name="paper", pool=2, channels=[8, 8, 8], hidden=32)):
+    for cfg in (
+        PolicyConfig(name="spatial", pool=1, channels=[8, 8, 8], hidden=32),
+        PolicyConfig(name="paper", pool=2, channels=[8, 8, 8], hidden=32),
+    ):
         ac = build_actor_critic(cfg, env.grid, env.view, env.action_spec)
         dist = ac.get_policy_operator().get_dist(td.clone())
         a = dist.sample(torch.Size([200]))
@@ -228,18 +245,46 @@ def test_config_flip_spellings():
 
 def test_bench_flip_evaluates_mirrored_figures_and_counts_them(tmp_path):
     out = tmp_path / "mirrored.json"
-    r = subprocess.run([sys.executable, str(ROOT / "tools" / "mirror_figures.py"), "builtin", str(out)],
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "tools" / "mirror_figures.py"), "builtin", str(out)], capture_output=True, text=True
+    )
     assert r.returncode == 0, r.stderr
     n = len(json.loads(out.read_text())["figures"])
     from mrchaos.cli.bench import main
 
-    assert main(["--figures", str(out), "--policy", "oracle", "--families", "h-normal,h-hard,h-fiendish",
-                 "--out", str(tmp_path / "skip")]) == 0
+    assert (
+        main(
+            [
+                "--figures",
+                str(out),
+                "--policy",
+                "oracle",
+                "--families",
+                "h-normal,h-hard,h-fiendish",
+                "--out",
+                str(tmp_path / "skip"),
+            ]
+        )
+        == 0
+    )
     skipped = json.loads((tmp_path / "skip" / "results.json").read_text())
     assert len(skipped["skipped"]) == n and not skipped["counts"]
-    assert main(["--figures", str(out), "--policy", "oracle", "--families", "h-normal,h-hard,h-fiendish",
-                 "--flip", "--out", str(tmp_path / "flip")]) == 0
+    assert (
+        main(
+            [
+                "--figures",
+                str(out),
+                "--policy",
+                "oracle",
+                "--families",
+                "h-normal,h-hard,h-fiendish",
+                "--flip",
+                "--out",
+                str(tmp_path / "flip"),
+            ]
+        )
+        == 0
+    )
     res = json.loads((tmp_path / "flip" / "results.json").read_text())
     assert not res["skipped"] and sum(res["counts"].values()) == n
     assert sum(res["needs_flip"].values()) == n
@@ -254,8 +299,11 @@ def _random_flips(n: int, seed: int, flipper=None):
 
     cfg = EnvConfig(num_worlds=n, grid=FLIP, placement="robot", task=CHAOS_ONLY)
     env = TangramEnv(cfg if flipper is None else dataclasses.replace(cfg, flipper=flipper), seed=seed)
-    env.reset(TensorDict(preassembled=torch.full((n,), PARALLELOGRAM), horizon=torch.ones(n, dtype=torch.long),
-                         batch_size=[n]))
+    env.reset(
+        TensorDict(
+            preassembled=torch.full((n,), PARALLELOGRAM), horizon=torch.ones(n, dtype=torch.long), batch_size=[n]
+        )
+    )
     # The three pieces before it were pre-assembled at chaos targets; clear them off the table.
     env.worlds.reset(np.arange(n))
     rng = np.random.default_rng(seed)
@@ -277,8 +325,10 @@ def test_robot_flips_land_turned_over_within_2mm_and_2deg():
         dist.append(d), angle.append(a), failed.append(f)
     dist, angle, failed = map(np.concatenate, (dist, angle, failed))
     good = ~failed & (dist < 0.002) & (angle < math.radians(2.0))
-    print(f"robot flips: {good.sum()} of 100 within 2 mm and 2 deg; median {1e3 * np.median(dist):.2f} mm, "
-          f"max {1e3 * dist[np.isfinite(dist)].max():.2f} mm, {np.degrees(angle[np.isfinite(angle)].max()):.2f} deg")
+    print(
+        f"robot flips: {good.sum()} of 100 within 2 mm and 2 deg; median {1e3 * np.median(dist):.2f} mm, "
+        f"max {1e3 * dist[np.isfinite(dist)].max():.2f} mm, {np.degrees(angle[np.isfinite(angle)].max()):.2f} deg"
+    )
     assert good.sum() >= 95
     # A flag and a measurement that disagree would hide failures.
     assert not (failed & np.isfinite(dist) & (dist < 0.002)).any()
@@ -297,14 +347,16 @@ def test_shipped_flip_policy_builds_the_mirrored_library_as_well_as_the_library(
     """mrchaos-flip, trained on chaos objects only, needs no --flip to evaluate mirrored figures,
     and on them loses less than 3 points of Final against the figures as drawn."""
     out = tmp_path / "mirrored.json"
-    r = subprocess.run([sys.executable, str(ROOT / "tools" / "mirror_figures.py"), "builtin", str(out)],
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "tools" / "mirror_figures.py"), "builtin", str(out)], capture_output=True, text=True
+    )
     assert r.returncode == 0, r.stderr
     from mrchaos.cli.bench import main
 
     fams = "h-normal,h-hard,h-fiendish"
-    assert main(["--figures", str(out), "--policy", "mrchaos-flip", "--families", fams,
-                 "--out", str(tmp_path / "m")]) == 0
+    assert (
+        main(["--figures", str(out), "--policy", "mrchaos-flip", "--families", fams, "--out", str(tmp_path / "m")]) == 0
+    )
     mirrored = json.loads((tmp_path / "m" / "results.json").read_text())
     assert not mirrored["skipped"] and sum(mirrored["needs_flip"].values()) == sum(mirrored["counts"].values())
     assert main(["--policy", "mrchaos-flip", "--families", fams, "--out", str(tmp_path / "u")]) == 0

@@ -20,15 +20,18 @@ from mrchaos.figures.pieces import (
     tangram7,
 )
 
-poses = st.tuples(
-    st.floats(-0.2, 0.2), st.floats(-0.2, 0.2), st.floats(-math.pi, math.pi)
-).map(np.array)
+poses = st.tuples(st.floats(-0.2, 0.2), st.floats(-0.2, 0.2), st.floats(-math.pi, math.pi)).map(np.array)
 
 
 def test_tangram7_facts(tangram):
     assert tangram.names == (
-        "large_triangle_1", "large_triangle_2", "square", "parallelogram",
-        "medium_triangle", "small_triangle_1", "small_triangle_2",
+        "large_triangle_1",
+        "large_triangle_2",
+        "square",
+        "parallelogram",
+        "medium_triangle",
+        "small_triangle_1",
+        "small_triangle_2",
     )
     assert math.isclose(tangram.total_area, 0.01, rel_tol=1e-9)
     legs = {"large_triangle_1": 0.0707107, "medium_triangle": 0.05, "small_triangle_1": 0.0353553}
@@ -41,7 +44,11 @@ def test_tangram7_facts(tangram):
     par = tangram.pieces[3]
     assert par.symmetry == 2 and par.chiral
     assert sorted(np.round(np.linalg.norm(np.roll(par.outline, -1, 0) - par.outline, axis=1), 5)) == [
-        0.03536, 0.03536, 0.05, 0.05]
+        0.03536,
+        0.03536,
+        0.05,
+        0.05,
+    ]
     assert all(tangram.pieces[i].symmetry == 1 for i in (0, 1, 4, 5, 6))
     assert all(p.thickness == 0.010 for p in tangram.pieces)
     tw = tangram.twin_matrix()
@@ -52,8 +59,16 @@ def test_tangram7_facts(tangram):
 
 
 def test_register_new_piece_set():
-    disc = np.stack([np.cos(np.linspace(0, 2 * np.pi, 16, endpoint=False)),
-                     np.sin(np.linspace(0, 2 * np.pi, 16, endpoint=False))], 1) * 0.033
+    disc = (
+        np.stack(
+            [
+                np.cos(np.linspace(0, 2 * np.pi, 16, endpoint=False)),
+                np.sin(np.linspace(0, 2 * np.pi, 16, endpoint=False)),
+            ],
+            1,
+        )
+        * 0.033
+    )
     cans = tuple(Piece(f"can{i}", disc, 0.12, symmetry=0) for i in range(3))
     register_piece_set("cans3", lambda: PieceSet("cans3", cans, twins=((0, 1, 2),)))
     ps = get_piece_set("cans3")

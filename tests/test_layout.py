@@ -18,8 +18,18 @@ LAYERS = ("core", "figures", "tasks", "sim", "env", "loggers", "learn", "bench",
 #: Top-level modules and the layer they belong to (``gym_env`` is the kept gymnasium alias).
 TOP_LEVEL = {"mrchaos": "core", "mrchaos.gym_env": "env"}
 #: What callers outside the env must not read: its parts and its solution.
-ENV_PARTS = {"worlds", "sampler", "target", "target_ids", "_worlds", "_sampler", "_target", "_target_ids",
-             "_silhouette", "_np_rng"}
+ENV_PARTS = {
+    "worlds",
+    "sampler",
+    "target",
+    "target_ids",
+    "_worlds",
+    "_sampler",
+    "_target",
+    "_target_ids",
+    "_silhouette",
+    "_np_rng",
+}
 #: Names whose attributes are not objects' parts: parsed command-line options (``args.worlds``).
 NOT_OBJECTS = {"args"}
 
@@ -81,7 +91,7 @@ def test_no_import_cycles_lazy_imports_included():
         stack.append(m)
         for d in sorted(graph[m]):
             if state.get(d) == 1:
-                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(d):] + [d]))
+                raise AssertionError("import cycle: " + " -> ".join(stack[stack.index(d) :] + [d]))
             if d not in state:
                 visit(d)
         stack.pop()
@@ -99,8 +109,19 @@ def test_every_module_imports_on_its_own_in_a_fresh_interpreter():
     names = sorted(MODULES)
     # Two at a time: each interpreter pays torch's import.
     for i in range(0, len(names), 2):
-        batch = [(n, subprocess.Popen([sys.executable, "-c", f"import {n}"], stdout=subprocess.PIPE,
-                                      stderr=subprocess.PIPE, text=True, env=env)) for n in names[i:i + 2]]
+        batch = [
+            (
+                n,
+                subprocess.Popen(
+                    [sys.executable, "-c", f"import {n}"],
+                    stdout=subprocess.PIPE,
+                    stderr=subprocess.PIPE,
+                    text=True,
+                    env=env,
+                ),
+            )
+            for n in names[i : i + 2]
+        ]
         for n, p in batch:
             _, err = p.communicate(timeout=300)
             if p.returncode:

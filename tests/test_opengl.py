@@ -18,15 +18,19 @@ def _python(code: str, **env: str | None) -> subprocess.CompletedProcess:
 
 
 def test_import_leaves_a_user_mujoco_gl_alone():
-    r = _python("import os, mrchaos, mrchaos.env.tangram, mrchaos.bench.benchmark; print(os.environ['MUJOCO_GL'])",
-                MUJOCO_GL="egl")
+    r = _python(
+        "import os, mrchaos, mrchaos.env.tangram, mrchaos.bench.benchmark; print(os.environ['MUJOCO_GL'])",
+        MUJOCO_GL="egl",
+    )
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "egl"
 
 
 def test_import_sets_no_backend_when_none_is_given():
-    r = _python("import os, mrchaos, mrchaos.env.tangram, mrchaos.bench.benchmark, mrchaos.learn.ppo; "
-                "print(os.environ.get('MUJOCO_GL', '-'), os.environ.get('PYOPENGL_PLATFORM', '-'))")
+    r = _python(
+        "import os, mrchaos, mrchaos.env.tangram, mrchaos.bench.benchmark, mrchaos.learn.ppo; "
+        "print(os.environ.get('MUJOCO_GL', '-'), os.environ.get('PYOPENGL_PLATFORM', '-'))"
+    )
     assert r.returncode == 0, r.stderr
     assert r.stdout.split() == ["-", "-"]
 
@@ -49,18 +53,22 @@ def test_no_backend_is_one_line_naming_what_to_install():
 
 
 def test_rendering_with_no_usable_backend_raises_the_one_line_error():
-    code = ("import mujoco\nfrom mrchaos.sim.opengl import RenderingUnavailable, make_renderer\n"
-            "m = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom size=\"0.1\"/></worldbody></mujoco>')\n"
-            "try:\n    make_renderer(m, 8, 8)\nexcept RenderingUnavailable as e:\n    print('ERR', e)\n")
+    code = (
+        "import mujoco\nfrom mrchaos.sim.opengl import RenderingUnavailable, make_renderer\n"
+        "m = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom size=\"0.1\"/></worldbody></mujoco>')\n"
+        "try:\n    make_renderer(m, 8, 8)\nexcept RenderingUnavailable as e:\n    print('ERR', e)\n"
+    )
     r = _python(code, MUJOCO_GL="disable")
     assert r.returncode == 0, r.stderr
     assert r.stdout.startswith("ERR MUJOCO_GL=disable") and r.stdout.count("\n") == 1
 
 
 def test_bench_without_a_backend_exits_2_with_one_line(tmp_path):
-    code = ("import sys\nfrom mrchaos.cli.bench import main\n"
-            f"sys.exit(main(['--policy', 'oracle', '--random-objects', '1', '--families', 'random', "
-            f"'--placement', 'robot', '--video', {str(tmp_path / 'v.gif')!r}, '--out', {str(tmp_path)!r}]))")
+    code = (
+        "import sys\nfrom mrchaos.cli.bench import main\n"
+        f"sys.exit(main(['--policy', 'oracle', '--random-objects', '1', '--families', 'random', "
+        f"'--placement', 'robot', '--video', {str(tmp_path / 'v.gif')!r}, '--out', {str(tmp_path)!r}]))"
+    )
     r = _python(code, MUJOCO_GL="disable")
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()

@@ -69,8 +69,11 @@ def test_factorised_categorical():
     d = FactorisedCategorical(lx, ly, lt)
     a = d.sample()
     assert a.shape == (5, 3) and (a[:, 2] < 8).all()
-    expect = (torch.log_softmax(lx, -1).gather(-1, a[:, :1]) + torch.log_softmax(ly, -1).gather(-1, a[:, 1:2])
-              + torch.log_softmax(lt, -1).gather(-1, a[:, 2:])).squeeze(-1)
+    expect = (
+        torch.log_softmax(lx, -1).gather(-1, a[:, :1])
+        + torch.log_softmax(ly, -1).gather(-1, a[:, 1:2])
+        + torch.log_softmax(lt, -1).gather(-1, a[:, 2:])
+    ).squeeze(-1)
     assert torch.allclose(d.log_prob(a), expect, atol=1e-5)
     assert torch.equal(d.mode, torch.stack([lx.argmax(-1), ly.argmax(-1), lt.argmax(-1)], -1))
 
@@ -141,10 +144,12 @@ def test_spatial_context_path_reaches_across_the_view(context):
     far = obs.clone()
     far[0, :, -8:, -8:] = 255 - far[0, :, -8:, -8:]  # bottom-right corner
     with torch.no_grad():
-        a, b = (policy.get_dist(TensorDict(observation=o, batch_size=[1])).scores
-                .view(1, grid.norient, grid.ny, grid.nx) for o in (obs, far))
+        a, b = (
+            policy.get_dist(TensorDict(observation=o, batch_size=[1])).scores.view(1, grid.norient, grid.ny, grid.nx)
+            for o in (obs, far)
+        )
     cy, cx = grid.ny // 2, grid.nx // 2
-    centre = (a - b)[..., cy - 1:cy + 2, cx - 1:cx + 2].abs().max().item()
+    centre = (a - b)[..., cy - 1 : cy + 2, cx - 1 : cx + 2].abs().max().item()
     assert (centre > 1e-6) == bool(context)
 
 

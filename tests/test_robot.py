@@ -162,8 +162,7 @@ def test_touching_another_piece_is_reported_as_a_collision(robot_worlds: Worlds)
     w.reset(rows)
     big, small = 0, 2
     on_top = np.tile(w._staging[small], (len(rows), 1))
-    w._write_flat(rows, np.full(len(rows), big), on_top,
-                  np.full(len(rows), w._thick[small] + w._thick[big] / 2))
+    w._write_flat(rows, np.full(len(rows), big), on_top, np.full(len(rows), w._thick[small] + w._thick[big] / 2))
     res = w.place(rows, np.full(len(rows), small), np.tile([0.05, 0.05, 0.0], (len(rows), 1)))
     assert res.robot.collision.all()
     # Placing on a free table afterwards reports nothing.
@@ -198,8 +197,13 @@ def test_perturbation_moves_the_piece_and_the_episode_goes_on() -> None:
     clean = evaluate(env, targets, lambda e, td: oracle_actions(e))
     pushed = evaluate(env, targets, lambda e, td: oracle_actions(e), perturb_after=2, perturb_distance=0.05)
     pt = pushed.perturbation
-    assert pt is not None and set(pt) == {"final_before", "final_after", "final_end", "coverage_before",
-                                          "coverage_after"}
+    assert pt is not None and set(pt) == {
+        "final_before",
+        "final_after",
+        "final_end",
+        "coverage_before",
+        "coverage_after",
+    }
     # A 5 cm push takes the piece off its slot: its coverage drops, and so does Final.
     assert (pt["coverage_after"] < pt["coverage_before"] - 0.3).mean() > 0.7
     assert pt["final_after"].mean() < pt["final_before"].mean()

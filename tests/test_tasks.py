@@ -143,8 +143,13 @@ def test_stacking_cans_on_one_slot_earns_nothing() -> None:
 def test_no_tangram_piece_names_in_shared_code() -> None:
     names = tangram7().names
     pattern = re.compile(r"\b(" + "|".join(names) + r")\b")
-    hits = [f"{path.name}:{i}" for path in PACKAGE.rglob("*.py") if path.name != "pieces.py"
-            for i, line in enumerate(path.read_text().splitlines(), 1) if pattern.search(line)]
+    hits = [
+        f"{path.name}:{i}"
+        for path in PACKAGE.rglob("*.py")
+        if path.name != "pieces.py"
+        for i, line in enumerate(path.read_text().splitlines(), 1)
+        if pattern.search(line)
+    ]
     assert not hits, hits
 
 
@@ -153,8 +158,12 @@ def test_bench_runs_a_task(tmp_path, capsys) -> None:
 
     out = tmp_path / "soda"
     rrd = tmp_path / "soda.rrd"  # the Random family mixes 3 to 6 cans in one recording
-    assert bench_main(["--task", "soda", "--policy", "oracle", "--random-objects", "8", "--out", str(out),
-                       "--record", str(rrd)]) == 0
+    assert (
+        bench_main(
+            ["--task", "soda", "--policy", "oracle", "--random-objects", "8", "--out", str(out), "--record", str(rrd)]
+        )
+        == 0
+    )
     assert rrd.stat().st_size > 10_000
     res = json.loads((out / "results.json").read_text())
     assert res["task"] == "soda" and res["counts"] == {"Authored": 10, "Random": 8}
@@ -173,8 +182,23 @@ def test_shipped_task_policy_beats_random_on_every_piece_set(task: str, tmp_path
 
     out = tmp_path / task
     assert bench_main(["--task", task, "--random-objects", "8", "--worlds", "8", "--out", str(out)]) == 0
-    assert bench_main(["--task", task, "--policy", "random", "--random-objects", "8", "--worlds", "8",
-                       "--out", str(tmp_path / "random")]) == 0
+    assert (
+        bench_main(
+            [
+                "--task",
+                task,
+                "--policy",
+                "random",
+                "--random-objects",
+                "8",
+                "--worlds",
+                "8",
+                "--out",
+                str(tmp_path / "random"),
+            ]
+        )
+        == 0
+    )
     trained = json.loads((out / "results.json").read_text())
     rand = json.loads((tmp_path / "random" / "results.json").read_text())["policies"]["random"]["families"]
     assert list(trained["policies"]) == [f"mrchaos-{task}"]

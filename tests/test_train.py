@@ -71,8 +71,11 @@ def test_checkpoint_errors(tmp_path):
     p.write_bytes(b"not a checkpoint at all")
     with pytest.raises(CheckpointError, match="x.pt: not a readable checkpoint"):
         load_checkpoint(p)
-    save_checkpoint(p, {"model": {"w": torch.ones(2)}, "piece_set": "tangram7", "obs_shape": [2, 120, 120],
-                        "grid": [51, 51, 8]}, half=True)
+    save_checkpoint(
+        p,
+        {"model": {"w": torch.ones(2)}, "piece_set": "tangram7", "obs_shape": [2, 120, 120], "grid": [51, 51, 8]},
+        half=True,
+    )
     st = load_checkpoint(p)
     assert st["model"]["w"].dtype == torch.float32
     soda = TangramEnv(EnvConfig(num_worlds=1, piece_set="soda3", task=TaskConfig(mix=MixConfig(chaos=1.0, cache=0.0))))
@@ -87,8 +90,17 @@ def test_checkpoint_errors(tmp_path):
 def test_smoke_run_and_resume_after_kill(tmp_path):
     """conf/smoke.yaml runs end to end; a killed run resumes from its last checkpoint."""
     env = dict(os.environ)
-    cmd = [sys.executable, "-m", "mrchaos.cli.train", str(SMOKE), f"runs_dir={tmp_path}",
-           "collector.total_frames=100000", "checkpoint.every=1", "--eval", "0"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "mrchaos.cli.train",
+        str(SMOKE),
+        f"runs_dir={tmp_path}",
+        "collector.total_frames=100000",
+        "checkpoint.every=1",
+        "--eval",
+        "0",
+    ]
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     run = tmp_path / "smoke"
     deadline = time.time() + 120
@@ -131,8 +143,20 @@ def test_smoke_run_and_resume_after_kill(tmp_path):
 def test_lr_anneals_linearly_over_the_frame_budget(tmp_path):
     with pytest.raises(ConfigError, match="optim.lr_final anneals over the run's budget"):
         load_config(SMOKE, ["optim.lr_final=0", "collector.total_frames=-1"])
-    assert train_main([str(SMOKE), f"runs_dir={tmp_path}", "collector.total_frames=512", "optim.lr=1e-3",
-                       "optim.lr_final=2e-4", "--eval", "0"]) == 0
+    assert (
+        train_main(
+            [
+                str(SMOKE),
+                f"runs_dir={tmp_path}",
+                "collector.total_frames=512",
+                "optim.lr=1e-3",
+                "optim.lr_final=2e-4",
+                "--eval",
+                "0",
+            ]
+        )
+        == 0
+    )
     # Each 128-frame iteration sets the rate for its update from the frames seen so far.
     lrs = [float(r["lr"]) for r in _rows(tmp_path / "smoke")]
     assert lrs == pytest.approx([1e-3 - 8e-4 * i / 4 for i in (1, 2, 3, 4)])
@@ -141,8 +165,17 @@ def test_lr_anneals_linearly_over_the_frame_budget(tmp_path):
 
 
 def test_sigterm_saves_and_exits_cleanly(tmp_path):
-    cmd = [sys.executable, "-m", "mrchaos.cli.train", str(SMOKE), f"runs_dir={tmp_path}",
-           "collector.total_frames=100000", "checkpoint.every=1000", "--eval", "0"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "mrchaos.cli.train",
+        str(SMOKE),
+        f"runs_dir={tmp_path}",
+        "collector.total_frames=100000",
+        "checkpoint.every=1000",
+        "--eval",
+        "0",
+    ]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     run = tmp_path / "smoke"
     deadline = time.time() + 120
@@ -171,14 +204,21 @@ def test_plot(tmp_path):
     run = tmp_path / "r"
     run.mkdir()
     (run / "metrics.csv").write_text(
-        "iteration,frames,episodes,stage,rela\n1,10,5,1,0.1\n2,20,10,1,0.2\n3,30,15,2,0.25\n4,40,16,2,0.3\n")
+        "iteration,frames,episodes,stage,rela\n1,10,5,1,0.1\n2,20,10,1,0.2\n3,30,15,2,0.25\n4,40,16,2,0.3\n"
+    )
     assert plot_main([str(run)]) == 0
     assert (run / "learning_curve.png").stat().st_size > 1000
     # A metrics.csv given as a file, against minutes and frames (one panel each).
     csv_file = tmp_path / "kept.csv"
-    csv_file.write_text((run / "metrics.csv").read_text().replace("stage,rela", "stage,rela,minutes")
-                        .replace(",0.1\n", ",0.1,0.5\n").replace(",0.2\n", ",0.2,1.0\n")
-                        .replace(",0.25\n", ",0.25,1.5\n").replace(",0.3\n", ",0.3,2.0\n"))
+    csv_file.write_text(
+        (run / "metrics.csv")
+        .read_text()
+        .replace("stage,rela", "stage,rela,minutes")
+        .replace(",0.1\n", ",0.1,0.5\n")
+        .replace(",0.2\n", ",0.2,1.0\n")
+        .replace(",0.25\n", ",0.25,1.5\n")
+        .replace(",0.3\n", ",0.3,2.0\n")
+    )
     out = tmp_path / "two.png"
     assert plot_main([str(csv_file), str(run / "metrics.csv"), "--x", "minutes", "frames", "--out", str(out)]) != 0
     assert plot_main([str(csv_file), "--x", "minutes", "frames", "--out", str(out)]) == 0
@@ -189,8 +229,18 @@ def test_plot(tmp_path):
 
 def test_behaviour_cloning_smoke(tmp_path, capsys):
     """conf/bc.yaml's pipeline on a tiny budget: demonstrations, NLL falls, a loadable policy checkpoint."""
-    rc = train_main([str(ROOT / "conf" / "bc.yaml"), f"runs_dir={tmp_path}", "bc.rotations=1", "bc.shifts=0",
-                     "bc.epochs=3", "env.num_worlds=32", "policy.channels=[8,16,16]", "policy.hidden=64"])
+    rc = train_main(
+        [
+            str(ROOT / "conf" / "bc.yaml"),
+            f"runs_dir={tmp_path}",
+            "bc.rotations=1",
+            "bc.shifts=0",
+            "bc.epochs=3",
+            "env.num_worlds=32",
+            "policy.channels=[8,16,16]",
+            "policy.hidden=64",
+        ]
+    )
     assert rc == 0
     assert "supervised on" in capsys.readouterr().out
     with open(tmp_path / "bc" / "metrics.csv") as f:
@@ -209,10 +259,25 @@ def test_dense_supervision_with_the_flip_smoke(tmp_path, caplog):
     import logging
 
     caplog.set_level(logging.INFO, logger="mrchaos.learn.bc")
-    rc = train_main([str(ROOT / "conf" / "dense.yaml"), f"runs_dir={tmp_path}", "env.grid.flip=true",
-                     "task.chaos.mirror_prob=0.5", "bc.objects=48", "bc.epochs=3", "bc.dagger_rounds=1",
-                     "bc.dagger_objects=16", "bc.dagger_epochs=1", "env.num_worlds=16", "precision=fp32",
-                     "policy.channels=[8,16,16]", "policy.hidden=64", "optim.lr=1e-3", "optim.lr_final=1e-4"])
+    rc = train_main(
+        [
+            str(ROOT / "conf" / "dense.yaml"),
+            f"runs_dir={tmp_path}",
+            "env.grid.flip=true",
+            "task.chaos.mirror_prob=0.5",
+            "bc.objects=48",
+            "bc.epochs=3",
+            "bc.dagger_rounds=1",
+            "bc.dagger_objects=16",
+            "bc.dagger_epochs=1",
+            "env.num_worlds=16",
+            "precision=fp32",
+            "policy.channels=[8,16,16]",
+            "policy.hidden=64",
+            "optim.lr=1e-3",
+            "optim.lr_final=1e-4",
+        ]
+    )
     assert rc == 0
     turned = [r.getMessage() for r in caplog.records if "with a piece turned over" in r.getMessage()]
     assert turned and " 0 with a piece turned over" not in turned[0]
@@ -232,8 +297,17 @@ def test_dense_supervision_with_the_flip_smoke(tmp_path, caplog):
 
 def test_multisync_collector_smoke(tmp_path):
     """collector.kind=multisync: two worker processes follow the curriculum switch."""
-    rc = train_main([str(SMOKE), f"runs_dir={tmp_path}", "collector.kind=multisync", "collector.workers=2",
-                     "collector.total_frames=768", "--eval", "0"])
+    rc = train_main(
+        [
+            str(SMOKE),
+            f"runs_dir={tmp_path}",
+            "collector.kind=multisync",
+            "collector.workers=2",
+            "collector.total_frames=768",
+            "--eval",
+            "0",
+        ]
+    )
     assert rc == 0
     rows = _rows(tmp_path / "smoke")
     assert len(rows) == 6 and {r["stage"] for r in rows} <= {"1", "2"}
@@ -249,8 +323,9 @@ def test_bf16_first_minibatch_ratios_are_one(tmp_path, monkeypatch):
     # would fall back to fp32; the numerics under test are the same either way.
     monkeypatch.setattr(precision, "cpu_has_bf16", lambda: True)
 
-    cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "precision=bf16", "compile=true", "logger.backends=[]",
-                              "logger.progress=false"])
+    cfg = load_config(
+        SMOKE, [f"runs_dir={tmp_path}", "precision=bf16", "compile=true", "logger.backends=[]", "logger.progress=false"]
+    )
     trainer = Trainer(cfg, tmp_path / "bf16")
     assert trainer.precision == "bf16"
     data = next(iter(trainer.collector))
@@ -285,8 +360,9 @@ def test_collected_values_give_the_same_advantages_as_recomputing_them(tmp_path)
 
     from mrchaos.learn.ppo import Trainer
 
-    cfg = load_config(SMOKE, [f"runs_dir={tmp_path}", "logger.backends=[]", "logger.progress=false",
-                              "curriculum.stages=global"])
+    cfg = load_config(
+        SMOKE, [f"runs_dir={tmp_path}", "logger.backends=[]", "logger.progress=false", "curriculum.stages=global"]
+    )
     trainer = Trainer(cfg, tmp_path / "gae")
     it = iter(trainer.collector)
     next(it)
@@ -298,8 +374,13 @@ def test_collected_values_give_the_same_advantages_as_recomputing_them(tmp_path)
         trainer.values(fast)
         trainer.advantage(fast)
         slow = data.clone().exclude("state_value")
-        GAE(gamma=cfg.loss.gamma, lmbda=cfg.loss.lmbda, value_network=trainer.value, average_gae=False,
-            deactivate_vmap=True)(slow)
+        GAE(
+            gamma=cfg.loss.gamma,
+            lmbda=cfg.loss.lmbda,
+            value_network=trainer.value,
+            average_gae=False,
+            deactivate_vmap=True,
+        )(slow)
     assert torch.allclose(fast["advantage"], slow["advantage"], atol=1e-4)
     assert torch.allclose(fast["value_target"], slow["value_target"], atol=1e-4)
 

@@ -33,8 +33,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"skipping {fid}: {why}", file=sys.stderr)
         figures, name = fs.figures, fs.name
     mirrored = [dataclasses.replace(mirror_figure(f), family=family_of(f)) for f in figures]
-    save_figures(mirrored, args.out, f"{name}-mirrored",
-                 description=f"{name} reflected in the y axis (tools/mirror_figures.py)")
+    save_figures(
+        mirrored, args.out, f"{name}-mirrored", description=f"{name} reflected in the y axis (tools/mirror_figures.py)"
+    )
     need = sum(f.has_mirrored for f in mirrored)
     print(f"wrote {len(mirrored)} mirrored figures to {args.out}; {need} need a chiral piece turned over")
     return 0

@@ -60,8 +60,9 @@ def load_states(run: Path) -> dict[str, torch.Tensor]:
         n = int(keep.sum())
         # Rows run (chunk, step, target) with ``per_chunk`` targets a chunk (the last may be short).
         objects = n // 7
-        step = torch.cat([torch.arange(7).repeat_interleave(min(per_chunk, objects - c))
-                          for c in range(0, objects, per_chunk)])
+        step = torch.cat(
+            [torch.arange(7).repeat_interleave(min(per_chunk, objects - c)) for c in range(0, objects, per_chunk)]
+        )
         for k in SHARD_KEYS:
             out[k].append(s[k][keep])
         out["step"].append(step)
@@ -99,10 +100,14 @@ class AfterstateRanker(nn.Module):
         super().__init__()
         w = width
         self.conv = nn.Sequential(
-            nn.Conv2d(3, w, 5, stride=2, padding=2), nn.ReLU(),
-            nn.Conv2d(w, 2 * w, 3, stride=2, padding=1), nn.ReLU(),
-            nn.Conv2d(2 * w, 2 * w, 3, stride=2, padding=1), nn.ReLU(),
-            nn.Conv2d(2 * w, 2 * w, 3, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(3, w, 5, stride=2, padding=2),
+            nn.ReLU(),
+            nn.Conv2d(w, 2 * w, 3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(2 * w, 2 * w, 3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(2 * w, 2 * w, 3, stride=2, padding=1),
+            nn.ReLU(),
         )
         cells = -(-size // 32)  # the input is average-pooled by 2 first (4.3 mm pixels)
         self.head = nn.Sequential(nn.Flatten(), nn.Linear(2 * w * cells * cells, 256), nn.ReLU(), nn.Linear(256, 1))
@@ -110,8 +115,9 @@ class AfterstateRanker(nn.Module):
 
     def forward(self, obs: torch.Tensor, masks: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
         b, k = masks.shape[:2]
-        x = torch.cat([obs[:, None].expand(b, k, 2, *obs.shape[-2:]).float() / 255,
-                       masks[:, :, None].float()], 2).reshape(b * k, 3, *obs.shape[-2:])
+        x = torch.cat(
+            [obs[:, None].expand(b, k, 2, *obs.shape[-2:]).float() / 255, masks[:, :, None].float()], 2
+        ).reshape(b * k, 3, *obs.shape[-2:])
         x = F.avg_pool2d(x, 2)
         return self.head(self.conv(x)).reshape(b, k) + self.prior * prior
 
@@ -137,8 +143,12 @@ def main() -> None:
     ap.add_argument("--init", default="mrchaos-dense", help="the policy (a shipped name, a run or a file)")
     ap.add_argument("--net", choices=["policy", "afterstate"], default="policy")
     ap.add_argument("--dense", type=float, default=0.0, help="policy: weight of the dense loss beside the ranking")
-    ap.add_argument("--rank", type=float, default=1.0, help="policy: weight of the ranking loss (0: the dense "
-                    "loss alone on the planner's states, a control)")
+    ap.add_argument(
+        "--rank",
+        type=float,
+        default=1.0,
+        help="policy: weight of the ranking loss (0: the dense loss alone on the planner's states, a control)",
+    )
     ap.add_argument("--width", type=int, default=32)
     ap.add_argument("--epochs", type=int, default=10)
     ap.add_argument("--lr", type=float, default=3e-4)
@@ -225,8 +235,9 @@ def main() -> None:
         print(f"epoch {epoch} ({time.perf_counter() - t0:.0f} s): " + "; ".join(cells), flush=True)
 
     if args.eval:
-        targets, _, mirrored = generate(env.piece_set, args.eval, np.random.default_rng(args.seed), cfg.task.chaos,
-                                        env.view)
+        targets, _, mirrored = generate(
+            env.piece_set, args.eval, np.random.default_rng(args.seed), cfg.task.chaos, env.view
+        )
         ev = TangramEnv(dataclasses.replace(cfg.env_config(), num_worlds=100, task=cfg.task.given_targets()), seed=0)
         k = train["candidates"].shape[1]
 
@@ -243,8 +254,10 @@ def main() -> None:
                 return cand[torch.arange(len(cand)), s.argmax(1)]
 
         res = evaluate(ev, targets, act, mirrored=mirrored)
-        print(f"greedy on {args.eval} Random objects (seed {args.seed}): Rela {100 * res.rela.mean():.1f} "
-              f"Final {100 * res.final.mean():.1f}")
+        print(
+            f"greedy on {args.eval} Random objects (seed {args.seed}): Rela {100 * res.rela.mean():.1f} "
+            f"Final {100 * res.final.mean():.1f}"
+        )
 
 
 if __name__ == "__main__":

@@ -14,17 +14,34 @@ from pathlib import Path
 from mrchaos.learn.checkpoint import load_checkpoint, save_checkpoint
 from mrchaos.learn.policy import PolicyConfig
 
-KEEP = ("kind", "config", "policy", "piece_set", "obs_shape", "grid", "view_extent", "model", "curriculum",
-        "iteration", "frames", "episodes", "minutes")
+KEEP = (
+    "kind",
+    "config",
+    "policy",
+    "piece_set",
+    "obs_shape",
+    "grid",
+    "view_extent",
+    "model",
+    "curriculum",
+    "iteration",
+    "frames",
+    "episodes",
+    "minutes",
+)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("run", type=Path)
     ap.add_argument("name")
-    ap.add_argument("--mode-window", type=int, metavar="W",
-                    help="set the shipped spatial policy's policy.mode_window (how its deterministic action is "
-                         "read; choose it on objects the bench does not use)")
+    ap.add_argument(
+        "--mode-window",
+        type=int,
+        metavar="W",
+        help="set the shipped spatial policy's policy.mode_window (how its deterministic action is "
+        "read; choose it on objects the bench does not use)",
+    )
     args = ap.parse_args()
     st = load_checkpoint(args.run / "checkpoints" / "last.pt")
     out = {k: st[k] for k in KEEP if k in st}
@@ -39,8 +56,10 @@ def main() -> None:
         out["eval"] = json.loads(ev.read_text())
     dest = Path(__file__).resolve().parents[1] / "mrchaos" / "data" / "policies" / f"{args.name}.pt"
     save_checkpoint(dest, out, half=True)
-    print(f"wrote {dest} ({dest.stat().st_size / 1e6:.1f} MB) from {args.run}: iteration {st['iteration']}, "
-          f"{st['frames']} frames")
+    print(
+        f"wrote {dest} ({dest.stat().st_size / 1e6:.1f} MB) from {args.run}: iteration {st['iteration']}, "
+        f"{st['frames']} frames"
+    )
 
 
 if __name__ == "__main__":

@@ -213,8 +213,13 @@ class Bench:
                 if f.piece_set.kind not in kinds:
                     self.skipped.append((f.id, f"{f.where}: piece set {f.piece_set.name} is not one of this task's"))
                 elif f.has_mirrored and not flip:
-                    self.skipped.append((f.id, f"{f.where}: needs a mirrored chiral piece (a suction robot cannot "
-                                               "flip it; evaluate it with --flip)"))
+                    self.skipped.append(
+                        (
+                            f.id,
+                            f"{f.where}: needs a mirrored chiral piece (a suction robot cannot "
+                            "flip it; evaluate it with --flip)",
+                        )
+                    )
                 else:
                     figs.append(f)
         rng = np.random.default_rng(seed)
@@ -225,10 +230,17 @@ class Bench:
                 groups = []
                 for name, k in zip(sets, counts, strict=True):
                     if k > 0:
-                        poses, _, mirrored = generate(get_piece_set(name), k, rng, self.env_config.task.chaos,
-                                                      self.env_config.view)
-                        groups.append((name, poses, mirrored, [f"random-{i}" if len(sets) == 1
-                                                               else f"random-{name}-{i}" for i in range(k)]))
+                        poses, _, mirrored = generate(
+                            get_piece_set(name), k, rng, self.env_config.task.chaos, self.env_config.view
+                        )
+                        groups.append(
+                            (
+                                name,
+                                poses,
+                                mirrored,
+                                [f"random-{i}" if len(sets) == 1 else f"random-{name}-{i}" for i in range(k)],
+                            )
+                        )
                 if groups:
                     self.targets[fam] = groups
                 continue
@@ -236,8 +248,9 @@ class Bench:
             groups = []
             for name in dict.fromkeys(f.piece_set.name for f in chosen):
                 sub = [f for f in chosen if f.piece_set.name == name]
-                groups.append((name, np.stack([f.poses for f in sub]), np.stack([f.mirrored for f in sub]),
-                               [f.id for f in sub]))
+                groups.append(
+                    (name, np.stack([f.poses for f in sub]), np.stack([f.mirrored for f in sub]), [f.id for f in sub])
+                )
             if groups:
                 self.targets[fam] = groups
                 self.needs_flip[fam] = sum(f.has_mirrored for f in chosen)
@@ -245,8 +258,12 @@ class Bench:
     def make_env(self, spec: PolicySpec, piece_set: str | None = None) -> TangramEnv:
         """The env a policy is evaluated in: the task's settings, then the checkpoint's
         :data:`mrchaos.learn.checkpoint.POLICY_ENV_GROUPS` (the view, grid and image it was trained on)."""
-        env: dict = {"num_worlds": self.num_worlds, "placement": self.placement, "robot": {"model": self.robot_model},
-                     "piece_set": piece_set or self.piece_set.name}
+        env: dict = {
+            "num_worlds": self.num_worlds,
+            "placement": self.placement,
+            "robot": {"model": self.robot_model},
+            "piece_set": piece_set or self.piece_set.name,
+        }
         if spec.state is not None:
             env.update(policy_env(spec.state))
         elif self.flip:
@@ -341,14 +358,32 @@ class Bench:
             env.film(self.scene_fps)
         return env, self.actor(spec, env), renderer
 
-    def _episodes(self, spec: PolicySpec, fam: str, ids: list[str], poses: np.ndarray, mirrored: np.ndarray,
-                  env: TangramEnv, act, renderer, record) -> EpisodeResults:
+    def _episodes(
+        self,
+        spec: PolicySpec,
+        fam: str,
+        ids: list[str],
+        poses: np.ndarray,
+        mirrored: np.ndarray,
+        env: TangramEnv,
+        act,
+        renderer,
+        record,
+    ) -> EpisodeResults:
         """One episode per target of a group, filmed and recorded as asked."""
         film = self._filmer(env, renderer, spec.name, fam, ids, record) if renderer else None
         if isinstance(act, Lookahead):
             act = act.actor(env, poses, mirrored)
-        res = evaluate(env, poses, act, record_steps=record is not None, perturb_after=self.perturb_after,
-                       perturb_distance=self.perturb_distance, on_step=film, mirrored=mirrored)
+        res = evaluate(
+            env,
+            poses,
+            act,
+            record_steps=record is not None,
+            perturb_after=self.perturb_after,
+            perturb_distance=self.perturb_distance,
+            on_step=film,
+            mirrored=mirrored,
+        )
         if record is not None:
             record.log_episodes(spec.name, fam, ids, res, env.piece_set.names)
         return res
@@ -402,17 +437,25 @@ def format_piece_table(results: dict, families: list[str]) -> str:
     fams = [f for f in families if f in results["counts"]]
     if not fams or not results["policies"]:
         return ""  # every figure skipped: nothing was placed
-    width = max(len(results["policies"][p]["families"][f]["by_piece"]["coverage"])
-                for p in results["policies"] for f in fams)
+    width = max(
+        len(results["policies"][p]["families"][f]["by_piece"]["coverage"]) for p in results["policies"] for f in fams
+    )
     names = list(results["piece_names"])[:width] + [f"piece {i}" for i in range(len(results["piece_names"]), width)]
     head = ["policy", "family"] + names
-    lines = [f"**Coverage of each piece when placed, % (in brackets: % of its placements under "
-             f"{100 * MISPLACED_BELOW:.0f} %)**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines = [
+        f"**Coverage of each piece when placed, % (in brackets: % of its placements under "
+        f"{100 * MISPLACED_BELOW:.0f} %)**",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * len(head),
+    ]
     for pol in results["policies"].values():
         for f in fams:
             b = pol["families"][f]["by_piece"]
-            cells = [f"{100 * c:.1f} ({100 * m:.0f})" if k else ""
-                     for c, m, k in zip(b["coverage"], b["misplaced"], b["n"], strict=True)]
+            cells = [
+                f"{100 * c:.1f} ({100 * m:.0f})" if k else ""
+                for c, m, k in zip(b["coverage"], b["misplaced"], b["n"], strict=True)
+            ]
             lines.append("| " + " | ".join([pol["label"], f] + cells + [""] * (width - len(cells))) + " |")
     return "\n".join(lines)
 
@@ -421,15 +464,19 @@ def format_table(results: dict, families: list[str], markdown: bool = False) -> 
     """Table I layout (one row per policy, Rela and Final per family), then the strict metrics."""
     fams = [f for f in families if f in results["counts"]]
     blocks = []
-    for title, metrics in (("Table I (paper's metrics, %)", ("rela", "final")),
-                           ("Strict metrics (ours, %)", ("iou", "strict_rela"))):
+    for title, metrics in (
+        ("Table I (paper's metrics, %)", ("rela", "final")),
+        ("Strict metrics (ours, %)", ("iou", "strict_rela")),
+    ):
         short = {"rela": "Rela", "final": "Final", "iou": "IoU", "strict_rela": "sRela"}
         head = ["policy"] + [f"{f} {short[m]}" for f in fams for m in metrics]
         rows = []
         for pol in results["policies"].values():
             s = pol["families"]
-            rows.append([pol["label"]] + [f"{100 * s[f][m]['mean']:.1f} ± {100 * s[f][m]['ci95']:.1f}"
-                                          for f in fams for m in metrics])
+            rows.append(
+                [pol["label"]]
+                + [f"{100 * s[f][m]['mean']:.1f} ± {100 * s[f][m]['ci95']:.1f}" for f in fams for m in metrics]
+            )
         rows.append(["n (episodes)"] + sum([[str(results["counts"][f])] + [""] * (len(metrics) - 1) for f in fams], []))
         if markdown:
             lines = [f"**{title}**", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -450,10 +497,12 @@ def format_table(results: dict, families: list[str], markdown: bool = False) -> 
                 blocks.append(f"robot failures per placement (%), {name} on {fam}: {rates}")
             if "perturbation" in s:
                 pt = {k: 100 * v["mean"] for k, v in s["perturbation"].items()}
-                blocks.append(f"push after step {results['perturb']['after_step']}, {name} on {fam}: pushed piece's "
-                              f"coverage {pt['coverage_before']:.1f} -> {pt['coverage_after']:.1f} %, Final "
-                              f"{pt['final_before']:.1f} -> {pt['final_after']:.1f} % at the push, "
-                              f"{pt['final_end']:.1f} % at the end")
+                blocks.append(
+                    f"push after step {results['perturb']['after_step']}, {name} on {fam}: pushed piece's "
+                    f"coverage {pt['coverage_before']:.1f} -> {pt['coverage_after']:.1f} %, Final "
+                    f"{pt['final_before']:.1f} -> {pt['final_after']:.1f} % at the push, "
+                    f"{pt['final_end']:.1f} % at the end"
+                )
     return "\n\n".join(blocks)
 
 
@@ -469,14 +518,23 @@ def write_outputs(results: dict, families: list[str], out: Path) -> None:
                     continue
                 lines.append(f"{name},{fam},{m},{s['mean']:.6f},{s['se']:.6f},{s['ci95']:.6f},{s['n']}")
     write_atomic(out / "results.csv", "\n".join(lines) + "\n")
-    md = ["# mrchaos-bench results", "", "Mean ± 95 % interval, in percent. Rela and Final are the paper's metrics; "
-          "IoU and sRela (strict Rela) are ours.", "", format_table(results, families, markdown=True)]
+    md = [
+        "# mrchaos-bench results",
+        "",
+        "Mean ± 95 % interval, in percent. Rela and Final are the paper's metrics; "
+        "IoU and sRela (strict Rela) are ours.",
+        "",
+        format_table(results, families, markdown=True),
+    ]
     pieces = format_piece_table(results, families)
     if pieces:
         md += ["", pieces]
     if any(results.get("needs_flip", {}).values()):
-        md += ["", "Figures that need a chiral piece turned over (evaluated with --flip): "
-               + ", ".join(f"{fam} {k}" for fam, k in results["needs_flip"].items())]
+        md += [
+            "",
+            "Figures that need a chiral piece turned over (evaluated with --flip): "
+            + ", ".join(f"{fam} {k}" for fam, k in results["needs_flip"].items()),
+        ]
     if results["skipped"]:
         md += ["", f"Skipped {len(results['skipped'])} figures:"]
         md += [f"- {fid}: {why}" for fid, why in results["skipped"]]

@@ -24,39 +24,79 @@ def _parser() -> argparse.ArgumentParser:
 
     ap = argparse.ArgumentParser(prog="mrchaos-bench", description=__doc__)
     ap.add_argument("--task", default="tangram", help=f"one of {', '.join(PRESETS)} (default: tangram)")
-    ap.add_argument("--families", default="all", help="'all' or comma-separated families of the task: " + "; ".join(
-        f"{','.join(f.lower() for f in p.families)} ({name})" for name, p in PRESETS.items()))
-    ap.add_argument("--policy", action="append", help="random, oracle, a shipped policy ("
-                    + ", ".join(SHIPPED) + "), or a checkpoint / run folder (repeatable; default: mrchaos, "
-                    "or mrchaos-<task>)")
-    ap.add_argument("--figures", action="append", help="interchange JSON or folder of KILOGRAM SVGs (repeatable; "
-                    "default: the built-in library, or the task's authored goals)")
+    ap.add_argument(
+        "--families",
+        default="all",
+        help="'all' or comma-separated families of the task: "
+        + "; ".join(f"{','.join(f.lower() for f in p.families)} ({name})" for name, p in PRESETS.items()),
+    )
+    ap.add_argument(
+        "--policy",
+        action="append",
+        help="random, oracle, a shipped policy ("
+        + ", ".join(SHIPPED)
+        + "), or a checkpoint / run folder (repeatable; default: mrchaos, "
+        "or mrchaos-<task>)",
+    )
+    ap.add_argument(
+        "--figures",
+        action="append",
+        help="interchange JSON or folder of KILOGRAM SVGs (repeatable; "
+        "default: the built-in library, or the task's authored goals)",
+    )
     ap.add_argument("--random-objects", type=int, default=200)
     ap.add_argument("--placement", default="teleport", choices=["teleport", "robot"])
-    ap.add_argument("--robot-model", default="", help="UR5e MJCF for --placement robot (default: the package's own; "
-                    "or MuJoCo Menagerie's universal_robots_ur5e/ur5e.xml)")
-    ap.add_argument("--perturb", type=int, metavar="STEP", help="push the piece placed at this step (0-based) "
-                    "away mid-episode, as in the paper's Fig. 6C, and report coverage before and after")
+    ap.add_argument(
+        "--robot-model",
+        default="",
+        help="UR5e MJCF for --placement robot (default: the package's own; "
+        "or MuJoCo Menagerie's universal_robots_ur5e/ur5e.xml)",
+    )
+    ap.add_argument(
+        "--perturb",
+        type=int,
+        metavar="STEP",
+        help="push the piece placed at this step (0-based) "
+        "away mid-episode, as in the paper's Fig. 6C, and report coverage before and after",
+    )
     ap.add_argument("--perturb-distance", type=float, default=0.05, help="length of the push (m)")
     ap.add_argument("--record", type=Path, help="write a rerun recording of every episode")
     ap.add_argument("--video", type=Path, help="with --placement robot: the first episode as a .gif or .mp4")
-    ap.add_argument("--scenes", type=int, default=1, help="with --placement robot and --record or --video: episodes "
-                    "per policy and family whose scene is rendered (a few frames per placement)")
-    ap.add_argument("--flip", action="store_true", help="evaluate figures that need a chiral piece turned over "
-                    "(skipped otherwise); random and oracle get the action grid's flip, a checkpoint keeps its "
-                    "own grid. "
-                    "Implied when a policy was trained with the flip")
+    ap.add_argument(
+        "--scenes",
+        type=int,
+        default=1,
+        help="with --placement robot and --record or --video: episodes "
+        "per policy and family whose scene is rendered (a few frames per placement)",
+    )
+    ap.add_argument(
+        "--flip",
+        action="store_true",
+        help="evaluate figures that need a chiral piece turned over "
+        "(skipped otherwise); random and oracle get the action grid's flip, a checkpoint keeps its "
+        "own grid. "
+        "Implied when a policy was trained with the flip",
+    )
     ap.add_argument("--out", type=Path, default=Path("runs/bench"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--worlds", type=int, default=64, help="worlds evaluated at once")
-    ap.add_argument("--lookahead", type=int, default=1, metavar="K",
-                    help="plan around each checkpoint policy: at every step, try its K best actions, complete each "
-                         "greedily in the simulator and keep the one whose end has the highest IoU with the "
-                         "silhouette (no solution is read; 1: the greedy policy alone)")
-    ap.add_argument("--mode-window", type=int, metavar="W",
-                    help="read each spatial checkpoint's deterministic action as the one whose WxW neighbourhood "
-                         "holds the most probability (odd; 1: the most probable action; default: the checkpoint's "
-                         "own policy.mode_window)")
+    ap.add_argument(
+        "--lookahead",
+        type=int,
+        default=1,
+        metavar="K",
+        help="plan around each checkpoint policy: at every step, try its K best actions, complete each "
+        "greedily in the simulator and keep the one whose end has the highest IoU with the "
+        "silhouette (no solution is read; 1: the greedy policy alone)",
+    )
+    ap.add_argument(
+        "--mode-window",
+        type=int,
+        metavar="W",
+        help="read each spatial checkpoint's deterministic action as the one whose WxW neighbourhood "
+        "holds the most probability (odd; 1: the most probable action; default: the checkpoint's "
+        "own policy.mode_window)",
+    )
     return ap
 
 
@@ -78,8 +118,12 @@ def _bench(args: argparse.Namespace) -> int:
     if flip and not args.flip:
         # A policy that can turn pieces over is asked to: skipping the figures it was trained
         # for would hide the result its checkpoint exists for.
-        print("--flip implied by " + ", ".join(s.name for s in specs if s.flips)
-              + ": figures that need a piece turned over are evaluated", file=sys.stderr)
+        print(
+            "--flip implied by "
+            + ", ".join(s.name for s in specs if s.flips)
+            + ": figures that need a piece turned over are evaluated",
+            file=sys.stderr,
+        )
     sets = [load_figures(p) for p in args.figures] if args.figures else None  # None: the task's own goals
     if args.video and args.video.suffix.lower() not in (".gif", ".mp4"):
         raise ValueError(f"{args.video}: --video must end in .gif or .mp4")
@@ -90,12 +134,22 @@ def _bench(args: argparse.Namespace) -> int:
         from mrchaos.sim.opengl import choose_backend
 
         choose_backend()  # fail before the evaluation, not after it
-    bench = Bench(sets, families, args.random_objects, args.seed, args.placement, args.worlds,
-                  robot_model=args.robot_model, perturb_after=args.perturb,
-                  perturb_distance=args.perturb_distance,
-                  scenes=max(args.scenes, 1 if args.video else 0) if film else 0,
-                  task=args.task, flip=flip, lookahead=args.lookahead,
-                  mode_window=args.mode_window)
+    bench = Bench(
+        sets,
+        families,
+        args.random_objects,
+        args.seed,
+        args.placement,
+        args.worlds,
+        robot_model=args.robot_model,
+        perturb_after=args.perturb,
+        perturb_distance=args.perturb_distance,
+        scenes=max(args.scenes, 1 if args.video else 0) if film else 0,
+        task=args.task,
+        flip=flip,
+        lookahead=args.lookahead,
+        mode_window=args.mode_window,
+    )
     for fid, why in bench.skipped:
         print(f"skipped {fid}: {why}", file=sys.stderr)
     recorder = None
@@ -119,8 +173,10 @@ def _bench(args: argparse.Namespace) -> int:
         print(f"wrote {args.video} ({len(bench.video_frames)} frames, twice real time)")
     print(format_table(results, families))
     if any(results["needs_flip"].values()):
-        print("figures that needed a piece turned over: "
-              + ", ".join(f"{fam} {k}" for fam, k in results["needs_flip"].items()))
+        print(
+            "figures that needed a piece turned over: "
+            + ", ".join(f"{fam} {k}" for fam, k in results["needs_flip"].items())
+        )
     if bench.skipped:
         print(f"({len(bench.skipped)} figures skipped: see results.md)")
     print(f"wrote {args.out}/results.{{json,csv,md}} and contact_sheet.png in {time.perf_counter() - t0:.0f} s")

@@ -140,8 +140,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--n", type=int, default=4096)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--mode", default="mix", choices=["scatter", "attract", "mix"])
-    s.add_argument("--piece-set", default="tangram7",
-                   help=f"a registered piece set ({', '.join(piece_set_names())}, or your own)")
+    s.add_argument(
+        "--piece-set", default="tangram7", help=f"a registered piece set ({', '.join(piece_set_names())}, or your own)"
+    )
     s.add_argument("--out", required=True)
     s.set_defaults(fn=cmd_chaos)
     return p

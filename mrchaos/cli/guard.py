@@ -30,8 +30,10 @@ class DependencyError(MrchaosError, ImportError):
 def _hint(package: str) -> str:
     gl = os.environ.get("MUJOCO_GL", "").strip().lower()
     if package == "mujoco" and gl in ("osmesa", "egl"):
-        lib = {"osmesa": "libOSMesa (apt-get install libosmesa6)",
-               "egl": "libEGL (apt-get install libegl1 libegl-mesa0)"}
+        lib = {
+            "osmesa": "libOSMesa (apt-get install libosmesa6)",
+            "egl": "libEGL (apt-get install libegl1 libegl-mesa0)",
+        }
         return f"; MUJOCO_GL={gl} needs {lib[gl]}, or unset MUJOCO_GL to let mrchaos choose"
     return f"; reinstall it with: pip install -e . (or pip install --force-reinstall {package})"
 

@@ -59,7 +59,7 @@ def plot_runs(run_dirs: list[Path], out: Path, window: int = 10, xs: tuple[str, 
             k = max(1, min(window, len(rela) // 5))
             # Trailing mean: each point averages the k iterations up to it (no edge artefacts).
             smooth = np.convolve(rela, np.ones(k) / k, mode="valid")
-            line, = ax.plot(t_ok[k - 1 :], smooth, label=_label(run))
+            (line,) = ax.plot(t_ok[k - 1 :], smooth, label=_label(run))
             ax.plot(t_ok, rela, color=line.get_color(), alpha=0.2, lw=0.8)
             stages = [r["stage"] for r in rows]
             for i in range(1, len(stages)):

@@ -11,8 +11,11 @@ from mrchaos.cli.guard import run_command
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="mrchaos-train", description="Train a tangram policy: PPO, or supervision "
-                                 "(algo: bc; BC, dense targets, DAgger, expert iteration).")
+    ap = argparse.ArgumentParser(
+        prog="mrchaos-train",
+        description="Train a tangram policy: PPO, or supervision "
+        "(algo: bc; BC, dense targets, DAgger, expert iteration).",
+    )
     ap.add_argument("config", nargs="?", help="YAML experiment (e.g. conf/full.yaml)")
     ap.add_argument("overrides", nargs="*", help="dotted overrides, e.g. optim.lr=1e-4 env.num_worlds=64")
     ap.add_argument("--resume", metavar="RUN_DIR", help="continue the run in this folder from its last checkpoint")
@@ -51,12 +54,16 @@ def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             return _supervise(cfg, run_dir)
         trainer = Trainer(cfg, run_dir)
     result = trainer.run()
-    print(f"{run_dir}: {result['iteration']} iterations, {result['frames']} frames"
-          + (" (stopped by signal)" if result["stopped"] else ""))
+    print(
+        f"{run_dir}: {result['iteration']} iterations, {result['frames']} frames"
+        + (" (stopped by signal)" if result["stopped"] else "")
+    )
     if args.eval > 0 and not result["stopped"]:
         ev = trainer.finish(args.eval)
-        print(f"greedy on {ev['n']} Random objects: Rela {ev['rela']:.3f}  Final {ev['final']:.3f}  "
-              f"IoU {ev['iou']:.3f}  strict Rela {ev['strict_rela']:.3f}")
+        print(
+            f"greedy on {ev['n']} Random objects: Rela {ev['rela']:.3f}  Final {ev['final']:.3f}  "
+            f"IoU {ev['iou']:.3f}  strict Rela {ev['strict_rela']:.3f}"
+        )
     return 0
 
 
@@ -64,9 +71,11 @@ def _supervise(cfg, run_dir: Path, resume: bool = False) -> int:
     from mrchaos.learn.bc import train_bc
 
     res = train_bc(cfg, run_dir, resume=resume)
-    print(f"{run_dir}: supervised on {res['samples']} labelled steps ({res['what']}), final loss "
-          f"{res['loss']:.3f}; greedy on {res['n']} Random objects: Rela {res['rela']:.3f} "
-          f"Final {res['final']:.3f}")
+    print(
+        f"{run_dir}: supervised on {res['samples']} labelled steps ({res['what']}), final loss "
+        f"{res['loss']:.3f}; greedy on {res['n']} Random objects: Rela {res['rela']:.3f} "
+        f"Final {res['final']:.3f}"
+    )
     return 0
 
 

@@ -107,8 +107,8 @@ def _sat_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     axes = np.concatenate([na, nb], axis=-2)[:, :, None, :]  # (m, A, 1, 2)
     valid = np.concatenate([va, vb], axis=-1)
     # Elementwise products beat einsum/matmul on these tiny batched shapes.
-    pa = (a[:, None, :, 0] * axes[..., 0] + a[:, None, :, 1] * axes[..., 1])  # (m, A, Va)
-    pb = (b[:, None, :, 0] * axes[..., 0] + b[:, None, :, 1] * axes[..., 1])
+    pa = a[:, None, :, 0] * axes[..., 0] + a[:, None, :, 1] * axes[..., 1]  # (m, A, Va)
+    pb = b[:, None, :, 0] * axes[..., 0] + b[:, None, :, 1] * axes[..., 1]
     overlap = np.minimum(pa.max(-1), pb.max(-1)) - np.maximum(pa.min(-1), pb.min(-1))
     overlap = np.where(valid, overlap, np.inf)
     return overlap.min(-1)

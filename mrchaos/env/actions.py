@@ -87,8 +87,9 @@ class ActionGrid:
         image (always False without flip)."""
         return np.asarray(action)[..., 2] >= self.ntheta
 
-    def nearest(self, pose: np.ndarray, period: np.ndarray | float = 2 * math.pi,
-                mirrored: np.ndarray | None = None) -> np.ndarray:
+    def nearest(
+        self, pose: np.ndarray, period: np.ndarray | float = 2 * math.pi, mirrored: np.ndarray | None = None
+    ) -> np.ndarray:
         """(..., 3) poses -> nearest (..., 3) indices; theta is matched modulo the piece's symmetry period.
 
         ``mirrored`` (...,) bool picks the turned-over face's indices (needs ``flip``)."""

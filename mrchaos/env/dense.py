@@ -74,8 +74,8 @@ class CounterfactualGrid:
             parts = ps.padded_parts(mirrored)
             for i in range(len(ps)):
                 centroid = ps.to_centroid(np.full(g.ntheta, i), origin, np.full(g.ntheta, mirrored[i]))  # (T, 3)
-                polys = rigid_transform(parts[i * kk:(i + 1) * kk][None], centroid[:, None])  # (T, K, V, 2)
-                out[i, face * g.ntheta:(face + 1) * g.ntheta, 0] = (rasterize(polys, kview).ids >= 0).float()
+                polys = rigid_transform(parts[i * kk : (i + 1) * kk][None], centroid[:, None])  # (T, K, V, 2)
+                out[i, face * g.ntheta : (face + 1) * g.ntheta, 0] = (rasterize(polys, kview).ids >= 0).float()
         return out
 
     def _correlate(self, masks: torch.Tensor, piece: torch.Tensor) -> torch.Tensor:
@@ -90,8 +90,15 @@ class CounterfactualGrid:
             out[rows] = res[..., : g.ny, : g.nx].flip(-2)  # grid y index ascends upwards
         return out
 
-    def coverage(self, piece: np.ndarray, targets: np.ndarray, placed_polys: np.ndarray, placed: np.ndarray,
-                 twins: np.ndarray, mirrored: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def coverage(
+        self,
+        piece: np.ndarray,
+        targets: np.ndarray,
+        placed_polys: np.ndarray,
+        placed: np.ndarray,
+        twins: np.ndarray,
+        mirrored: np.ndarray | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Counterfactual coverage and overlap of every grid action, (N, T, Y, X) each, in [0, 1]
         (T = ``grid.norient``: face-up orientations, then turned-over ones with a flip grid).
 

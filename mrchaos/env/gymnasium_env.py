@@ -1,8 +1,8 @@
 """A single-world ``gymnasium`` version of the tangram environment, for users of other RL libraries.
 
-    import gymnasium as gym
-    env = gym.make("mrchaos.gym_env:Tangram-v0")          # or gym.make("mrchaos/Tangram-v0")
-                                                          # after ``import mrchaos.env.gymnasium_env``
+import gymnasium as gym
+env = gym.make("mrchaos.gym_env:Tangram-v0")          # or gym.make("mrchaos/Tangram-v0")
+                                                      # after ``import mrchaos.env.gymnasium_env``
 """
 
 from __future__ import annotations

@@ -182,8 +182,9 @@ def iou(cur: torch.Tensor, silhouette: torch.Tensor) -> torch.Tensor:
     return inter / union.clamp(min=1)
 
 
-def strict_rela(cur: torch.Tensor, tgt: torch.Tensor, twin_groups: tuple[tuple[int, ...], ...],
-                num_pieces: int) -> torch.Tensor:
+def strict_rela(
+    cur: torch.Tensor, tgt: torch.Tensor, twin_groups: tuple[tuple[int, ...], ...], num_pieces: int
+) -> torch.Tensor:
     """(B,) mean per-piece coverage of the final view with twins assigned one-to-one.
 
     Each twin group takes the assignment of its slots that maximises its total
@@ -192,8 +193,9 @@ def strict_rela(cur: torch.Tensor, tgt: torch.Tensor, twin_groups: tuple[tuple[i
     return strict_rela_from_joint(joint_counts(cur, tgt, num_pieces), twin_groups, num_pieces)
 
 
-def strict_rela_from_joint(joint: torch.Tensor, twin_groups: tuple[tuple[int, ...], ...],
-                           num_pieces: int) -> torch.Tensor:
+def strict_rela_from_joint(
+    joint: torch.Tensor, twin_groups: tuple[tuple[int, ...], ...], num_pieces: int
+) -> torch.Tensor:
     """:func:`strict_rela` from a joint histogram (:func:`joint_counts`)."""
     ratio = coverage_ratio(joint[:, 1:, 1:], joint[:, :, 1:].sum(1))
     total = torch.zeros(joint.shape[0], dtype=torch.float64)

@@ -54,8 +54,15 @@ class RewardConfig:
             raise ValueError(f"env.reward.twin_slots must be one of {TWIN_SLOTS}, got {self.twin_slots!r}")
 
 
-def reward_terms(cfg: RewardConfig, coverage: torch.Tensor, shaped: torch.Tensor, penetration: torch.Tensor,
-                 theta: torch.Tensor, slot_theta: torch.Tensor, period: torch.Tensor) -> dict[str, torch.Tensor]:
+def reward_terms(
+    cfg: RewardConfig,
+    coverage: torch.Tensor,
+    shaped: torch.Tensor,
+    penetration: torch.Tensor,
+    theta: torch.Tensor,
+    slot_theta: torch.Tensor,
+    period: torch.Tensor,
+) -> dict[str, torch.Tensor]:
     """Every term of the step reward, (N,) each.
 
     Args:

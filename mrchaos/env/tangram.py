@@ -149,8 +149,13 @@ class TangramEnv(EnvBase):
 
     batch_locked = True
 
-    def __init__(self, cfg: EnvConfig | None = None, seed: int | None = 0, figures: list[Figure] | None = None,
-                 device: str = "cpu"):
+    def __init__(
+        self,
+        cfg: EnvConfig | None = None,
+        seed: int | None = 0,
+        figures: list[Figure] | None = None,
+        device: str = "cpu",
+    ):
         cfg = cfg if cfg is not None else EnvConfig()  # a fresh default: the env keeps and reads it
         super().__init__(device=device, batch_size=torch.Size([cfg.num_worlds]))
         self.cfg = cfg
@@ -162,8 +167,9 @@ class TangramEnv(EnvBase):
         self._thickness = min(p.thickness for p in self.piece_set.pieces)
         robot = cfg.robot if cfg.placement == "robot" else None
         flipper = cfg.flipper if cfg.grid.flip else None
-        self._worlds = Worlds(self.piece_set, cfg.num_worlds, cfg.physics, SceneConfig(), self.view, robot,
-                              flipper=flipper)
+        self._worlds = Worlds(
+            self.piece_set, cfg.num_worlds, cfg.physics, SceneConfig(), self.view, robot, flipper=flipper
+        )
         self._sampler = TargetSampler(self.piece_set, cfg.task, figures, self.view, flip=cfg.grid.flip)
         self._camera = None
         if cfg.camera == "mujoco":
@@ -313,9 +319,7 @@ class TangramEnv(EnvBase):
         bad = (a < 0) | (a >= hi)
         if bad.any():
             r, c = np.argwhere(bad)[0]
-            raise ValueError(
-                f"action out of range: world {r} component {'xyθ'[c]} = {a[r, c]}, valid 0..{hi[c] - 1}"
-            )
+            raise ValueError(f"action out of range: world {r} component {'xyθ'[c]} = {a[r, c]}, valid 0..{hi[c] - 1}")
         return a
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -399,8 +403,14 @@ class TangramEnv(EnvBase):
         if self._counterfactual is None:
             self._counterfactual = CounterfactualGrid(self.piece_set, self.grid)
         r = np.arange(self.cfg.num_worlds) if rows is None else np.asarray(rows)
-        return self._counterfactual.coverage(self._upcoming()[r], self._target[r], self._worlds.footprint[r],
-                                             self._worlds.placed[r], self._twins, self._mirrored[r])
+        return self._counterfactual.coverage(
+            self._upcoming()[r],
+            self._target[r],
+            self._worlds.footprint[r],
+            self._worlds.placed[r],
+            self._twins,
+            self._mirrored[r],
+        )
 
     @property
     def worlds(self) -> Worlds:
@@ -443,8 +453,9 @@ class TangramEnv(EnvBase):
             return raster, self._worlds.raster(self.view, shift=shift, need_height=need_height)
         return raster, raster
 
-    def _step_reward(self, p: _Placement, acted: torch.Tensor, coverage: torch.Tensor, slot: torch.Tensor,
-                     held: torch.Tensor) -> dict[str, torch.Tensor]:
+    def _step_reward(
+        self, p: _Placement, acted: torch.Tensor, coverage: torch.Tensor, slot: torch.Tensor, held: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
         """The named reward terms of the worlds that placed a piece (``acted``; 0 elsewhere), (N,) each."""
         n = self.cfg.num_worlds
         t = torch.as_tensor(p.piece)
@@ -455,8 +466,15 @@ class TangramEnv(EnvBase):
             # it and takes its slot, which adds nothing.
             raw = (held - self._held).clamp(min=0.0)
         slot_theta = torch.as_tensor(self._target[np.arange(n), slot[ar, t].numpy(), 2], dtype=torch.float32)
-        terms = reward_terms(self.cfg.reward, raw, self._shaped[t], torch.as_tensor(p.penetration, dtype=torch.float32),
-                             torch.as_tensor(p.commanded[:, 2], dtype=torch.float32), slot_theta, self._period[t])
+        terms = reward_terms(
+            self.cfg.reward,
+            raw,
+            self._shaped[t],
+            torch.as_tensor(p.penetration, dtype=torch.float32),
+            torch.as_tensor(p.commanded[:, 2], dtype=torch.float32),
+            slot_theta,
+            self._period[t],
+        )
         return {k: torch.where(acted, v, torch.zeros(())) for k, v in terms.items()}
 
     def _observe(self, fresh: bool, placement: _Placement | None = None) -> TensorDictBase:
@@ -505,8 +523,15 @@ class TangramEnv(EnvBase):
             out.set("reward", terms["reward"].float()[:, None])
         return out
 
-    def _info(self, coverage: torch.Tensor, terms: dict[str, torch.Tensor], joint: torch.Tensor, strict: torch.Tensor,
-              pieces: torch.Tensor, placement: _Placement | None) -> TensorDict:
+    def _info(
+        self,
+        coverage: torch.Tensor,
+        terms: dict[str, torch.Tensor],
+        joint: torch.Tensor,
+        strict: torch.Tensor,
+        pieces: torch.Tensor,
+        placement: _Placement | None,
+    ) -> TensorDict:
         """The step's info: per-piece coverage, the step's terms, whole-figure metrics and placement flags."""
         n = self.cfg.num_worlds
         col = lambda x, dtype=torch.float32: torch.as_tensor(x, dtype=dtype)[:, None]  # noqa: E731

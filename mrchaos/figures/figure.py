@@ -161,8 +161,9 @@ def mirror_figure(fig: Figure, suffix: str = "-mirrored") -> Figure:
     """The figure reflected in the y axis (x -> -x): every chiral piece changes face, so a figure
     built face up needs the chiral pieces turned over, and the other way round."""
     polys = [fig.piece_polygon(i) * np.array([-1.0, 1.0]) for i in range(len(fig.piece_set))]
-    return figure_from_polygons(fig.piece_set, polys, fig.id + suffix, name=fig.name + suffix, family=fig.family,
-                                source=fig.source)
+    return figure_from_polygons(
+        fig.piece_set, polys, fig.id + suffix, name=fig.name + suffix, family=fig.family, source=fig.source
+    )
 
 
 def figure_from_polygons(
@@ -193,9 +194,7 @@ def figure_from_polygons(
         if not np.isfinite(v).all():
             raise FigureError(f"{where}: piece {piece.name}: vertices contain NaN or inf")
         if len(v) != len(piece.outline):
-            raise FigureError(
-                f"{where}: piece {piece.name} needs {len(piece.outline)} vertices, got {len(v)}"
-            )
+            raise FigureError(f"{where}: piece {piece.name} needs {len(piece.outline)} vertices, got {len(v)}")
         if not math.isclose(abs(polygon_area(v)), piece.area, rel_tol=0.05):
             raise FigureError(
                 f"{where}: piece {piece.name} has area {abs(polygon_area(v)) * 1e6:.0f} mm^2, "

@@ -126,8 +126,7 @@ def figure_to_dict(fig: Figure) -> dict:
     if fig.family is not None:
         entry["family"] = fig.family
     entry["pieces"] = [
-        {"piece": n, "vertices": np.round(fig.piece_polygon(i), 9).tolist()}
-        for i, n in enumerate(fig.piece_set.names)
+        {"piece": n, "vertices": np.round(fig.piece_polygon(i), 9).tolist()} for i, n in enumerate(fig.piece_set.names)
     ]
     if fig.has_mirrored:
         entry["mirrored"] = [fig.piece_set.names[i] for i in np.flatnonzero(fig.mirrored)]

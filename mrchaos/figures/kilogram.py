@@ -49,8 +49,11 @@ def _transform_matrix(text: str | None, where: str) -> np.ndarray:
             t = r
         elif kind in ("skewX", "skewY") and len(v) == 1:
             k = math.tan(math.radians(v[0]))
-            t = (np.array([[1, k, 0], [0, 1, 0], [0, 0, 1]]) if kind == "skewX"
-                 else np.array([[1, 0, 0], [k, 1, 0], [0, 0, 1]]))
+            t = (
+                np.array([[1, k, 0], [0, 1, 0], [0, 0, 1]])
+                if kind == "skewX"
+                else np.array([[1, 0, 0], [k, 1, 0], [0, 0, 1]])
+            )
         else:
             raise FigureError(f"{where}: cannot read transform {kind}({args})")
         m = m @ t

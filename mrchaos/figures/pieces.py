@@ -233,7 +233,6 @@ class PieceSet:
             out[i, len(o) :] = o[-1]
         return out
 
-
     @property
     def parts_per_piece(self) -> int:
         """K: the most convex parts of any piece (1 for convex sets)."""
@@ -255,8 +254,10 @@ class PieceSet:
         last one, shorter polygons repeat their last vertex. For convex sets this is
         :meth:`padded_outlines`."""
         k = self.parts_per_piece
-        parts = [list(p.mirrored_parts() if (mirrored is not None and mirrored[i]) else p.parts)
-                 for i, p in enumerate(self.pieces)]
+        parts = [
+            list(p.mirrored_parts() if (mirrored is not None and mirrored[i]) else p.parts)
+            for i, p in enumerate(self.pieces)
+        ]
         vmax = max(len(q) for ps in parts for q in ps)
         out = np.zeros((len(self.pieces) * k, vmax, 2))
         for i, ps in enumerate(parts):
@@ -276,8 +277,9 @@ class PieceSet:
         ``mirrored`` (..., P) bool (or (P,) for all) selects the mirror image of a piece."""
         poses = np.repeat(np.asarray(poses), self.parts_per_piece, -2)
         if mirrored is None or np.asarray(mirrored).ndim <= 1 or not np.any(mirrored):
-            return rigid_transform(self.padded_parts(None if mirrored is None or np.asarray(mirrored).ndim > 1
-                                                     else mirrored), poses)
+            return rigid_transform(
+                self.padded_parts(None if mirrored is None or np.asarray(mirrored).ndim > 1 else mirrored), poses
+            )
         both = np.stack([self.padded_parts(), self.padded_parts(np.ones(len(self.pieces), dtype=bool))])
         which = np.repeat(np.asarray(mirrored, dtype=np.int64), self.parts_per_piece, -1)
         return rigid_transform(both[which, np.arange(which.shape[-1])], poses)
@@ -334,23 +336,39 @@ def cutlery() -> PieceSet:
     symmetry. Outlines are the unions of the convex parts listed here.
     """
     t = 0.004
-    knife = piece_from_parts("knife", [
-        np.array([[0.0, -0.0085], [0.094, -0.0075], [0.094, 0.0075], [0.0, 0.0085]]),  # handle
-        np.array([[0.094, -0.010], [0.165, -0.010], [0.192, -0.005], [0.208, 0.004], [0.21, 0.010],
-                  [0.094, 0.010]]),  # blade
-    ], t, chiral=True)
-    spoon = piece_from_parts("spoon", [
-        np.array([[0.0, -0.007], [0.115, -0.003], [0.115, 0.003], [0.0, 0.007]]),  # handle
-        _ellipse(0.145, 0.032, 0.021),  # bowl
-    ], t)
-    tines = [np.array([[0.1495, y], [0.195, y], [0.195, y + 0.004], [0.1495, y + 0.004]])
-             for y in (-0.011, -0.005, 0.001, 0.007)]
-    fork = piece_from_parts("fork", [
-        np.array([[0.0, -0.009], [0.105, -0.005], [0.105, 0.005], [0.0, 0.009]]),  # handle
-        np.array([[0.105, -0.005], [0.135, -0.011], [0.135, 0.011], [0.105, 0.005]]),  # neck
-        np.array([[0.135, -0.011], [0.150, -0.011], [0.150, 0.011], [0.135, 0.011]]),  # head
-        *tines,
-    ], t)
+    knife = piece_from_parts(
+        "knife",
+        [
+            np.array([[0.0, -0.0085], [0.094, -0.0075], [0.094, 0.0075], [0.0, 0.0085]]),  # handle
+            np.array(
+                [[0.094, -0.010], [0.165, -0.010], [0.192, -0.005], [0.208, 0.004], [0.21, 0.010], [0.094, 0.010]]
+            ),  # blade
+        ],
+        t,
+        chiral=True,
+    )
+    spoon = piece_from_parts(
+        "spoon",
+        [
+            np.array([[0.0, -0.007], [0.115, -0.003], [0.115, 0.003], [0.0, 0.007]]),  # handle
+            _ellipse(0.145, 0.032, 0.021),  # bowl
+        ],
+        t,
+    )
+    tines = [
+        np.array([[0.1495, y], [0.195, y], [0.195, y + 0.004], [0.1495, y + 0.004]])
+        for y in (-0.011, -0.005, 0.001, 0.007)
+    ]
+    fork = piece_from_parts(
+        "fork",
+        [
+            np.array([[0.0, -0.009], [0.105, -0.005], [0.105, 0.005], [0.0, 0.009]]),  # handle
+            np.array([[0.105, -0.005], [0.135, -0.011], [0.135, 0.011], [0.105, 0.005]]),  # neck
+            np.array([[0.135, -0.011], [0.150, -0.011], [0.150, 0.011], [0.135, 0.011]]),  # head
+            *tines,
+        ],
+        t,
+    )
     return PieceSet("cutlery", (knife, spoon, fork))
 
 

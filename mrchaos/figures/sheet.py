@@ -77,9 +77,7 @@ def figure_sheet(figures: Sequence, columns: int = 8, tile: int = 200, view: Vie
     return _grid(tiles, labels, columns)
 
 
-def pair_sheet(
-    pairs: Sequence[tuple[np.ndarray, np.ndarray, str]], columns: int = 6, scale: int = 2
-) -> Image.Image:
+def pair_sheet(pairs: Sequence[tuple[np.ndarray, np.ndarray, str]], columns: int = 6, scale: int = 2) -> Image.Image:
     """Silhouette-versus-result pairs: each entry is (silhouette HxW bool, view HxW, label).
 
     The result image is drawn in grey over the silhouette in light blue, so spill

@@ -53,8 +53,9 @@ __all__ = ["augment", "demonstrations", "supervised_loss", "ranking_loss", "Supe
 log = logging.getLogger("mrchaos.learn.bc")
 
 
-def augment(figures: list[Figure], rotations: int, shifts: int, max_shift: float, rng: np.random.Generator,
-            bound: float) -> tuple[np.ndarray, np.ndarray]:
+def augment(
+    figures: list[Figure], rotations: int, shifts: int, max_shift: float, rng: np.random.Generator, bound: float
+) -> tuple[np.ndarray, np.ndarray]:
     """(M, P, 3) target poses and (M, P) bool faces (turned over): each figure rotated about its
     centre and shifted, every vertex kept within ``bound`` metres of the centre (inside the view)."""
     out, faces = [], []
@@ -89,9 +90,14 @@ def _dense_label(env: TangramEnv, overlap_limit: float, rows: np.ndarray | None 
     return q
 
 
-def demonstrations(env: TangramEnv, targets: np.ndarray, actor=None, dense: bool = False,
-                   overlap_limit: float = 0.02,
-                   mirrored: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def demonstrations(
+    env: TangramEnv,
+    targets: np.ndarray,
+    actor=None,
+    dense: bool = False,
+    overlap_limit: float = 0.02,
+    mirrored: np.ndarray | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Observations (M*P, 2, H, W) uint8 along each assembly and their labels.
 
     ``mirrored`` (M, P) bool marks target pieces that lie turned over (the env needs the flip).
@@ -112,8 +118,10 @@ def demonstrations(env: TangramEnv, targets: np.ndarray, actor=None, dense: bool
     evaluate(env, targets, act, mirrored=mirrored)
     nw, n, p = env.batch_size[0], len(targets), env.num_pieces
     keep = [min(nw, n - start) for start in range(0, n, nw) for _ in range(p)]
-    return (torch.cat([o[:k] for o, k in zip(obs, keep, strict=True)]),
-            torch.cat([lb[:k] for lb, k in zip(labels, keep, strict=True)]))
+    return (
+        torch.cat([o[:k] for o, k in zip(obs, keep, strict=True)]),
+        torch.cat([lb[:k] for lb, k in zip(labels, keep, strict=True)]),
+    )
 
 
 def _targets(cfg: TrainConfig, rng: np.random.Generator, n_chaos: int, seed: int) -> tuple[np.ndarray, np.ndarray, str]:
@@ -122,8 +130,9 @@ def _targets(cfg: TrainConfig, rng: np.random.Generator, n_chaos: int, seed: int
     flip = cfg.env.grid.flip
     if cfg.bc.source == "chaos":
         cfg.task.given_targets().check_flip(flip)  # before the objects are generated, not after
-        poses, _, mirrored = generate(get_piece_set(cfg.env.piece_set), n_chaos, np.random.default_rng(seed),
-                                      cfg.task.chaos, cfg.env.view)
+        poses, _, mirrored = generate(
+            get_piece_set(cfg.env.piece_set), n_chaos, np.random.default_rng(seed), cfg.task.chaos, cfg.env.view
+        )
         turned = int(mirrored.any(1).sum())
         return poses, mirrored, f"{n_chaos} chaos objects (seed {seed}, {turned} with a piece turned over)"
     figs: list[Figure] = []
@@ -131,8 +140,9 @@ def _targets(cfg: TrainConfig, rng: np.random.Generator, n_chaos: int, seed: int
         figs += builtin_figures() if src == "builtin" else load_figures(src).figures
     if not flip:  # without the flip, a figure that needs a turned-over piece cannot be assembled
         figs = [f for f in figs if not f.has_mirrored]
-    poses, mirrored = augment(figs, cfg.bc.rotations, cfg.bc.shifts, cfg.bc.max_shift, rng,
-                              cfg.task.chaos.bound(cfg.env.view))
+    poses, mirrored = augment(
+        figs, cfg.bc.rotations, cfg.bc.shifts, cfg.bc.max_shift, rng, cfg.task.chaos.bound(cfg.env.view)
+    )
     return poses, mirrored, f"{len(figs)} figures ({len(poses)} augmented)"
 
 
@@ -146,8 +156,9 @@ def supervised_loss(dist, labels: torch.Tensor, dense: bool, temperature: float)
     return -(target * dist.logits).sum(-1)
 
 
-def ranking_loss(dist: GridCategorical, candidates: torch.Tensor, iou: torch.Tensor,
-                 temperature: float) -> torch.Tensor:
+def ranking_loss(
+    dist: GridCategorical, candidates: torch.Tensor, iou: torch.Tensor, temperature: float
+) -> torch.Tensor:
     """Per-sample listwise loss: the cross-entropy between softmax(IoU / T) over a state's planner
     candidates (B, k, 3) and the softmax of the policy's mode scores at the same candidates, the
     scores whose argmax is the deterministic action (windowed under a mode window)."""
@@ -189,8 +200,11 @@ class SupervisedRun:
         self.device = torch.device(cfg.device)
         bc, ex = cfg.bc, cfg.exit
         #: (kind, epochs) of every round, in order.
-        self.plan = ([("demo", bc.epochs)] + [("dagger", bc.dagger_epochs)] * bc.dagger_rounds
-                     + [("exit", ex.epochs)] * ex.rounds)
+        self.plan = (
+            [("demo", bc.epochs)]
+            + [("dagger", bc.dagger_epochs)] * bc.dagger_rounds
+            + [("exit", ex.epochs)] * ex.rounds
+        )
         if ex.rounds and cfg.env.num_worlds < ex.k:
             raise ValueError(f"exit.k={ex.k} candidates need env.num_worlds >= {ex.k}, got {cfg.env.num_worlds}")
         self.env = TangramEnv(dataclasses.replace(cfg.env_config(), task=cfg.task.given_targets()), seed=cfg.seed)
@@ -217,17 +231,25 @@ class SupervisedRun:
         bc = cfg.bc
         if kind == "demo":
             if self.plan[r][1] == 0:  # no demonstrations (a run that starts from init_from)
-                return self._shard(torch.zeros(0, 2, self.env.view.size, self.env.view.size, dtype=torch.uint8),
-                                   self._empty_labels()), "no demonstrations"
+                return self._shard(
+                    torch.zeros(0, 2, self.env.view.size, self.env.view.size, dtype=torch.uint8), self._empty_labels()
+                ), "no demonstrations"
             targets, faces, what = _targets(cfg, self.rng, bc.objects, bc.seed)
-            obs, labels = demonstrations(self.env, targets, dense=self.dense, overlap_limit=bc.overlap_limit,
-                                         mirrored=faces)
+            obs, labels = demonstrations(
+                self.env, targets, dense=self.dense, overlap_limit=bc.overlap_limit, mirrored=faces
+            )
             self.episodes += len(targets)
             return self._shard(obs, labels), what
         if kind == "dagger":
             targets, faces, what = _targets(cfg, self.rng, bc.dagger_objects, bc.seed + r)
-            obs, labels = demonstrations(self.env, targets, actor=policy_actor(self.policy), dense=self.dense,
-                                         overlap_limit=bc.overlap_limit, mirrored=faces)
+            obs, labels = demonstrations(
+                self.env,
+                targets,
+                actor=policy_actor(self.policy),
+                dense=self.dense,
+                overlap_limit=bc.overlap_limit,
+                mirrored=faces,
+            )
             self.episodes += len(targets)
             return self._shard(obs, labels), f"the policy's own assemblies of {what}"
         ex = cfg.exit
@@ -240,11 +262,21 @@ class SupervisedRun:
         self.ac.train()
         self.episodes += len(targets)
         agree = float((lab.best == 0).float().mean())
-        self.round_metrics = {"greedy_rela": float(greedy.rela.mean()), "planner_rela": float(planned.rela.mean()),
-                              "agreement": agree}
-        log.info("expert-iteration round %d: on its %d objects the greedy policy scores Rela %.3f, the planner "
-                 "around it %.3f; the policy's mode is the planner's choice on %.1f %% of %d states",
-                 r, len(targets), greedy.rela.mean(), planned.rela.mean(), 100 * agree, len(lab))
+        self.round_metrics = {
+            "greedy_rela": float(greedy.rela.mean()),
+            "planner_rela": float(planned.rela.mean()),
+            "agreement": agree,
+        }
+        log.info(
+            "expert-iteration round %d: on its %d objects the greedy policy scores Rela %.3f, the planner "
+            "around it %.3f; the policy's mode is the planner's choice on %.1f %% of %d states",
+            r,
+            len(targets),
+            greedy.rela.mean(),
+            planned.rela.mean(),
+            100 * agree,
+            len(lab),
+        )
         return self._shard(lab.observation, lab.extra, lab.candidates, lab.iou), f"the planner's assemblies of {what}"
 
     def _state_label(self, env: TangramEnv, rows: np.ndarray) -> torch.Tensor:
@@ -255,11 +287,17 @@ class SupervisedRun:
 
     def _empty_labels(self) -> torch.Tensor:
         g = self.env.grid
-        return torch.zeros((0, g.norient, g.ny, g.nx) if self.dense else (0, 3),
-                           dtype=torch.uint8 if self.dense else torch.int64)
+        return torch.zeros(
+            (0, g.norient, g.ny, g.nx) if self.dense else (0, 3), dtype=torch.uint8 if self.dense else torch.int64
+        )
 
-    def _shard(self, obs: torch.Tensor, labels: torch.Tensor, candidates: torch.Tensor | None = None,
-               iou: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    def _shard(
+        self,
+        obs: torch.Tensor,
+        labels: torch.Tensor,
+        candidates: torch.Tensor | None = None,
+        iou: torch.Tensor | None = None,
+    ) -> dict[str, torch.Tensor]:
         k = self.cfg.exit.k
         if candidates is None:
             candidates = torch.zeros(len(obs), k, 3, dtype=torch.int64)
@@ -274,8 +312,9 @@ class SupervisedRun:
             try:
                 shard = torch.load(path, weights_only=True)
             except Exception as e:  # torch raises many types for truncated or foreign files
-                raise CheckpointError(f"{path}: not a readable data shard ({type(e).__name__}: "
-                                      f"{str(e)[:160]})") from None
+                raise CheckpointError(
+                    f"{path}: not a readable data shard ({type(e).__name__}: {str(e)[:160]})"
+                ) from None
             if not isinstance(shard, dict) or set(shard) != set(SHARD_KEYS):
                 raise CheckpointError(f"{path}: not a data shard of a supervised run (keys {SHARD_KEYS})")
             log.info("round %d: %d labelled states from %s", r, len(shard["observation"]), path)
@@ -283,28 +322,44 @@ class SupervisedRun:
             t0 = time.perf_counter()
             shard, what = self._label_round(r)
             write_atomic(path, lambda f: torch.save(shard, f))
-            log.info("round %d: %d labelled states from %s in %.0f s", r, len(shard["observation"]), what,
-                     time.perf_counter() - t0)
+            log.info(
+                "round %d: %d labelled states from %s in %.0f s",
+                r,
+                len(shard["observation"]),
+                what,
+                time.perf_counter() - t0,
+            )
         self.shards.append(shard)
 
     # ------------------------------------------------------------------ state
     def _state(self) -> dict:
         cfg = self.cfg
         return {
-            **policy_header(self.env, config_to_dict(cfg.policy)), "config": config_to_dict(cfg),
-            "model": self.ac.state_dict(), "optim": self.opt.state_dict(),
-            "curriculum": {"stage": 0, "switched_at": -1}, "iteration": len(self.rows),
-            "frames": sum(len(s["observation"]) for s in self.shards), "episodes": self.episodes,
-            "minutes": self.minutes, "rng": {"torch": torch.get_rng_state(), "numpy": self.rng.bit_generator.state},
+            **policy_header(self.env, config_to_dict(cfg.policy)),
+            "config": config_to_dict(cfg),
+            "model": self.ac.state_dict(),
+            "optim": self.opt.state_dict(),
+            "curriculum": {"stage": 0, "switched_at": -1},
+            "iteration": len(self.rows),
+            "frames": sum(len(s["observation"]) for s in self.shards),
+            "episodes": self.episodes,
+            "minutes": self.minutes,
+            "rng": {"torch": torch.get_rng_state(), "numpy": self.rng.bit_generator.state},
             "supervision": {"round": self.round, "epoch": self.epoch, "rows": self.rows},
         }
 
     def _save(self) -> None:
         save_checkpoint(self.ckpt, self._state())
         fields = METRIC_FIELDS
-        write_atomic(self.run_dir / "metrics.csv", ",".join(fields) + "\n" + "".join(
-            ",".join(f"{r[k]:.6f}" if isinstance(r.get(k), float) else str(r.get(k, "")) for k in fields) + "\n"
-            for r in self.rows))
+        write_atomic(
+            self.run_dir / "metrics.csv",
+            ",".join(fields)
+            + "\n"
+            + "".join(
+                ",".join(f"{r[k]:.6f}" if isinstance(r.get(k), float) else str(r.get(k, "")) for k in fields) + "\n"
+                for r in self.rows
+            ),
+        )
 
     def _restore(self) -> None:
         st = load_weights(self.ac, self.ckpt, self.env)
@@ -321,8 +376,9 @@ class SupervisedRun:
         self.rng.bit_generator.state = st["rng"]["numpy"]
         for r in range(self.round + 1):
             if not self._shard_path(r).exists():
-                raise CheckpointError(f"{self._shard_path(r)}: the data of round {r} is missing; the run "
-                                      "cannot resume without it")
+                raise CheckpointError(
+                    f"{self._shard_path(r)}: the data of round {r} is missing; the run cannot resume without it"
+                )
             self._load_or_label(r)
         log.info("resumed %s at round %d, epoch %d", self.ckpt, self.round, self.epoch)
 
@@ -346,8 +402,9 @@ class SupervisedRun:
                 has = ~iou[:, 0].isnan()
                 rank = torch.zeros((), device=self.device)
                 if has.any():
-                    rank = ranking_loss(dist, data["candidates"][idx].to(self.device)[has], iou[has],
-                                        cfg.exit.temperature).sum() / len(idx)
+                    rank = ranking_loss(
+                        dist, data["candidates"][idx].to(self.device)[has], iou[has], cfg.exit.temperature
+                    ).sum() / len(idx)
                 loss = sup_weight * sup + cfg.exit.weight * rank
             self.opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -373,12 +430,26 @@ class SupervisedRun:
                 res = self._fit_epoch(data, planned, self.cfg.exit.dense if kind == "exit" else 1.0)
                 self.epoch += 1
                 self.minutes = (time.perf_counter() - t0) / 60
-                row = {"epoch": len(self.rows) + 1, "round": self.round, "kind": kind, **res,
-                       "lr": self.opt.param_groups[0]["lr"], "minutes": self.minutes,
-                       **(self.round_metrics if self.epoch == 1 else {})}
+                row = {
+                    "epoch": len(self.rows) + 1,
+                    "round": self.round,
+                    "kind": kind,
+                    **res,
+                    "lr": self.opt.param_groups[0]["lr"],
+                    "minutes": self.minutes,
+                    **(self.round_metrics if self.epoch == 1 else {}),
+                }
                 self.rows.append(row)
-                log.info("epoch %d (round %d, %s, %d samples): loss %.4f (supervised %.4f, ranking %.4f)",
-                         len(self.rows), self.round, kind, res["samples"], res["loss"], res["sup"], res["rank"])
+                log.info(
+                    "epoch %d (round %d, %s, %d samples): loss %.4f (supervised %.4f, ranking %.4f)",
+                    len(self.rows),
+                    self.round,
+                    kind,
+                    res["samples"],
+                    res["loss"],
+                    res["sup"],
+                    res["rank"],
+                )
                 self._save()
             del data
             # Each round's policy stays loadable: the next round's planner is built around it.
@@ -391,15 +462,32 @@ class SupervisedRun:
         ev = evaluate_random(self.policy, self.cfg.env_config(), n=100)
         write_atomic(self.run_dir / "eval.json", json.dumps(ev, indent=1) + "\n")
         samples = sum(len(s["observation"]) for s in self.shards)
-        return {"samples": samples, "what": f"{len(self.plan)} rounds", "loss": self.rows[-1]["loss"] if self.rows
-                else float("nan"), **ev}
+        return {
+            "samples": samples,
+            "what": f"{len(self.plan)} rounds",
+            "loss": self.rows[-1]["loss"] if self.rows else float("nan"),
+            **ev,
+        }
 
 
 #: Columns of a supervised run's ``metrics.csv``: one row per epoch; the planner's figures
 #: (greedy and planner Rela on the round's objects, how often the policy's mode is the planner's
 #: choice) on the first epoch of an expert-iteration round.
-METRIC_FIELDS = ["epoch", "round", "kind", "samples", "ranked", "loss", "sup", "rank", "lr", "minutes",
-                 "greedy_rela", "planner_rela", "agreement"]
+METRIC_FIELDS = [
+    "epoch",
+    "round",
+    "kind",
+    "samples",
+    "ranked",
+    "loss",
+    "sup",
+    "rank",
+    "lr",
+    "minutes",
+    "greedy_rela",
+    "planner_rela",
+    "agreement",
+]
 
 
 def train_bc(cfg: TrainConfig, run_dir: Path, resume: bool = False) -> dict:

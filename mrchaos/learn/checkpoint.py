@@ -20,10 +20,20 @@ from mrchaos.core.atomic import write_atomic
 from mrchaos.core.errors import MrchaosError, first_line
 from mrchaos.learn.config import upgrade_config_dict
 
-__all__ = ["CheckpointError", "SHIPPED", "shipped_path", "checkpoint_path", "save_checkpoint", "load_checkpoint",
-           "policy_header", "check_header", "policy_env",
-           "load_weights",
-           "POLICY_ENV_GROUPS", "FORMAT"]
+__all__ = [
+    "CheckpointError",
+    "SHIPPED",
+    "shipped_path",
+    "checkpoint_path",
+    "save_checkpoint",
+    "load_checkpoint",
+    "policy_header",
+    "check_header",
+    "policy_env",
+    "load_weights",
+    "POLICY_ENV_GROUPS",
+    "FORMAT",
+]
 
 #: Learnt policies shipped with the package: name -> (file, label).
 SHIPPED = {

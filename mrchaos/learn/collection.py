@@ -62,8 +62,13 @@ def make_env(cfg: TrainConfig, seed: int, stage: torch.Tensor | None = None) -> 
     """The training env: batched tangram worlds on the CPU with the curriculum transform."""
     base = TangramEnv(cfg.env_config(), seed=seed, device=ENV_DEVICE)
     cur = CurriculumTransform(
-        base.num_pieces, cfg.curriculum.stages, cfg.curriculum.window, cfg.curriculum.epsilon,
-        cfg.curriculum.min_iters, seed=seed + 1, stage=stage,
+        base.num_pieces,
+        cfg.curriculum.stages,
+        cfg.curriculum.window,
+        cfg.curriculum.epsilon,
+        cfg.curriculum.min_iters,
+        seed=seed + 1,
+        stage=stage,
     )
     return TransformedEnv(base, cur)
 
@@ -134,8 +139,7 @@ def publish_stage(collector: Any, stage: torch.Tensor) -> None:
             raise RuntimeError(f"Ray actors report curriculum stages {got}, expected {int(stage)}")
 
 
-def make_collector(cfg: TrainConfig, env: TransformedEnv, policy: TensorDictModuleBase,
-                   stage: torch.Tensor) -> Any:
+def make_collector(cfg: TrainConfig, env: TransformedEnv, policy: TensorDictModuleBase, stage: torch.Tensor) -> Any:
     """The run's collector (``cfg.collector.kind``), its policy weights already in every worker.
 
     Args:
@@ -150,8 +154,10 @@ def make_collector(cfg: TrainConfig, env: TransformedEnv, policy: TensorDictModu
         return Collector(env, policy, auto_register_policy_transforms=False, **common)
     workers = cfg.collector.workers
     if cfg.collector.frames_per_batch % (workers * cfg.env.num_worlds):
-        raise ValueError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple of "
-                         f"collector.workers x env.num_worlds ({workers} x {cfg.env.num_worlds})")
+        raise ValueError(
+            f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple of "
+            f"collector.workers x env.num_worlds ({workers} x {cfg.env.num_worlds})"
+        )
     wcfg = worker_config(cfg)
     if kind == "multisync":
         # Worker processes share the stage's memory with the trainer.
@@ -161,8 +167,9 @@ def make_collector(cfg: TrainConfig, env: TransformedEnv, policy: TensorDictModu
     return _ray_collector(cfg, wcfg, policy, stage, common)
 
 
-def _ray_collector(cfg: TrainConfig, wcfg: TrainConfig, policy: TensorDictModuleBase, stage: torch.Tensor,
-                   common: dict) -> Any:
+def _ray_collector(
+    cfg: TrainConfig, wcfg: TrainConfig, policy: TensorDictModuleBase, stage: torch.Tensor, common: dict
+) -> Any:
     try:
         import ray  # noqa: F401
     except ImportError:
@@ -178,7 +185,11 @@ def _ray_collector(cfg: TrainConfig, wcfg: TrainConfig, policy: TensorDictModule
     # RayCollector reads total_frames=-1 literally (no batch); the trainer decides when to stop.
     common = {**common, "total_frames": sys.maxsize}
     collector = Collector(
-        factories, policy, backend="ray", num_collectors=c.workers, sync=True,
+        factories,
+        policy,
+        backend="ray",
+        num_collectors=c.workers,
+        sync=True,
         backend_options={
             "collector_class": CurriculumCollector,
             "collector_kwargs": {"auto_register_policy_transforms": False},

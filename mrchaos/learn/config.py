@@ -107,8 +107,10 @@ class CollectorConfig:
         if self.kind not in COLLECTOR_KINDS:
             raise ValueError(f"collector.kind must be one of {', '.join(COLLECTOR_KINDS)}, got {self.kind!r}")
         if self.workers < 1 or self.worker_threads < 1:
-            raise ValueError(f"collector.workers and collector.worker_threads must be >= 1, got "
-                             f"{self.workers} and {self.worker_threads}")
+            raise ValueError(
+                f"collector.workers and collector.worker_threads must be >= 1, got "
+                f"{self.workers} and {self.worker_threads}"
+            )
 
 
 @dataclass
@@ -258,13 +260,17 @@ class ExitConfig:
 
     def __post_init__(self) -> None:
         if self.rounds < 0 or self.objects < 1 or self.epochs < 0:
-            raise ValueError(f"exit.rounds and exit.epochs must be >= 0 and exit.objects >= 1, got "
-                             f"{self.rounds}, {self.epochs} and {self.objects}")
+            raise ValueError(
+                f"exit.rounds and exit.epochs must be >= 0 and exit.objects >= 1, got "
+                f"{self.rounds}, {self.epochs} and {self.objects}"
+            )
         if self.k < 2:
             raise ValueError(f"exit.k must be >= 2 (a ranking needs two candidates), got {self.k}")
         if self.temperature <= 0 or self.weight < 0 or self.dense < 0:
-            raise ValueError(f"exit.temperature must be > 0, exit.weight and exit.dense >= 0, got "
-                             f"{self.temperature}, {self.weight} and {self.dense}")
+            raise ValueError(
+                f"exit.temperature must be > 0, exit.weight and exit.dense >= 0, got "
+                f"{self.temperature}, {self.weight} and {self.dense}"
+            )
 
 
 @dataclass
@@ -305,8 +311,9 @@ class TrainConfig:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
         no_budget = self.collector.total_frames <= 0 and self.collector.max_minutes <= 0
         if self.algo == "ppo" and self.optim.lr_final is not None and no_budget:
-            raise ValueError("optim.lr_final anneals over the run's budget: set collector.total_frames or "
-                             "collector.max_minutes")
+            raise ValueError(
+                "optim.lr_final anneals over the run's budget: set collector.total_frames or collector.max_minutes"
+            )
         if self.exit.rounds and self.algo != "bc":
             raise ValueError("exit.rounds are rounds of supervision: set algo: bc")
         if self.exit.rounds and self.policy.name != "spatial":

@@ -56,10 +56,16 @@ def policy_actor(policy) -> Actor:
     return act
 
 
-def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: bool = False,
-             perturb_after: int | None = None, perturb_distance: float = 0.05,
-             on_step: Callable[[int, int, TensorDict], None] | None = None,
-             mirrored: np.ndarray | None = None) -> EpisodeResults:
+def evaluate(
+    env: TangramEnv,
+    targets: np.ndarray,
+    actor: Actor,
+    record_steps: bool = False,
+    perturb_after: int | None = None,
+    perturb_distance: float = 0.05,
+    on_step: Callable[[int, int, TensorDict], None] | None = None,
+    mirrored: np.ndarray | None = None,
+) -> EpisodeResults:
     """Run one episode per target on ``env`` (in chunks of its world count) and collect metrics.
 
     ``mirrored`` (n, P) bool marks target pieces that lie turned over (default: none).
@@ -103,13 +109,16 @@ def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: b
             if on_step is not None:
                 on_step(start, t, nxt)
             if record_steps:
-                steps.append({
-                    "episode": np.arange(start, start + m), "t": t,
-                    "observation": td["observation"][:m].numpy().copy(),
-                    "action": action[:m].numpy().copy(),
-                    "coverage": nxt["info", "coverage"][:m].numpy().copy(),
-                    "reward": nxt["info", "step_coverage"][:m, 0].numpy().copy(),
-                })
+                steps.append(
+                    {
+                        "episode": np.arange(start, start + m),
+                        "t": t,
+                        "observation": td["observation"][:m].numpy().copy(),
+                        "action": action[:m].numpy().copy(),
+                        "coverage": nxt["info", "coverage"][:m].numpy().copy(),
+                        "reward": nxt["info", "step_coverage"][:m, 0].numpy().copy(),
+                    }
+                )
             td = TensorDict(observation=nxt["observation"], batch_size=env.batch_size)
         cov = torch.stack(cov, 1)[:m]
         out["cov"].append(cov.numpy())
@@ -126,9 +135,15 @@ def evaluate(env: TangramEnv, targets: np.ndarray, actor: Actor, record_steps: b
     cat = {k: np.concatenate(v) for k, v in out.items() if k not in ("fail", "pert")}
 
     return EpisodeResults(
-        rela=cat["rela"], final=cat["final"], iou=cat["iou"], strict_rela=cat["strict"],
-        step_coverage=cat["cov"], silhouettes=cat["sil"], final_views=cat["view"],
-        failures=_merge(out["fail"]), perturbation=_merge(out["pert"]),
+        rela=cat["rela"],
+        final=cat["final"],
+        iou=cat["iou"],
+        strict_rela=cat["strict"],
+        step_coverage=cat["cov"],
+        silhouettes=cat["sil"],
+        final_views=cat["view"],
+        failures=_merge(out["fail"]),
+        perturbation=_merge(out["pert"]),
         steps=steps if record_steps else None,
     )
 
@@ -142,8 +157,13 @@ def evaluate_random(policy, env_cfg: EnvConfig, n: int = 200, seed: int = 2024) 
     targets, _, mirrored = generate(env.piece_set, n, np.random.default_rng(seed), cfg.task.chaos, cfg.view)
     res = evaluate(env, targets, policy_actor(policy), mirrored=mirrored)
     env.close()
-    return {"n": n, "rela": float(res.rela.mean()), "final": float(res.final.mean()),
-            "iou": float(res.iou.mean()), "strict_rela": float(res.strict_rela.mean())}
+    return {
+        "n": n,
+        "rela": float(res.rela.mean()),
+        "final": float(res.final.mean()),
+        "iou": float(res.iou.mean()),
+        "strict_rela": float(res.strict_rela.mean()),
+    }
 
 
 def _merge(dicts: list[dict[str, np.ndarray] | None]) -> dict[str, np.ndarray] | None:
@@ -161,9 +181,16 @@ def concat_results(parts: list[EpisodeResults]) -> EpisodeResults:
 
     # Episodes of different piece counts have coverage rows of different lengths.
     width = max(r.step_coverage.shape[1] for r in parts)
-    cov = [np.pad(r.step_coverage, ((0, 0), (0, width - r.step_coverage.shape[1])), constant_values=np.nan)
-           for r in parts]
-    arrays = {k: np.concatenate([getattr(r, k) for r in parts])
-              for k in ("rela", "final", "iou", "strict_rela", "silhouettes", "final_views")}
-    return EpisodeResults(step_coverage=np.concatenate(cov), failures=_merge([r.failures for r in parts]),
-                          perturbation=_merge([r.perturbation for r in parts]), **arrays)
+    cov = [
+        np.pad(r.step_coverage, ((0, 0), (0, width - r.step_coverage.shape[1])), constant_values=np.nan) for r in parts
+    ]
+    arrays = {
+        k: np.concatenate([getattr(r, k) for r in parts])
+        for k in ("rela", "final", "iou", "strict_rela", "silhouettes", "final_views")
+    }
+    return EpisodeResults(
+        step_coverage=np.concatenate(cov),
+        failures=_merge([r.failures for r in parts]),
+        perturbation=_merge([r.perturbation for r in parts]),
+        **arrays,
+    )

@@ -79,9 +79,13 @@ class Lookahead:
         """The chosen (x, y, orientation) index of every step of every target: (n, pieces, 3)."""
         return self._run(env, targets, mirrored)[0]
 
-    def label(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None = None,
-              on_state: Callable[[TangramEnv, np.ndarray], torch.Tensor] | None = None,
-              ) -> tuple[PlannerLabels, np.ndarray]:
+    def label(
+        self,
+        env: TangramEnv,
+        targets: np.ndarray,
+        mirrored: np.ndarray | None = None,
+        on_state: Callable[[TangramEnv, np.ndarray], torch.Tensor] | None = None,
+    ) -> tuple[PlannerLabels, np.ndarray]:
         """Plan ``targets`` and keep, for every step, the state, the k candidates and their
         completions' IoUs; also the plan (as :meth:`plan`). ``on_state(env, rows)`` is called at
         each planned state (k copies of each target stand in it) with the worlds of the targets'
@@ -90,9 +94,14 @@ class Lookahead:
         assert labels is not None
         return labels, chosen
 
-    def _run(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None, record: bool = False,
-             on_state: Callable[[TangramEnv, np.ndarray], torch.Tensor] | None = None,
-             ) -> tuple[np.ndarray, PlannerLabels | None]:
+    def _run(
+        self,
+        env: TangramEnv,
+        targets: np.ndarray,
+        mirrored: np.ndarray | None,
+        record: bool = False,
+        on_state: Callable[[TangramEnv, np.ndarray], torch.Tensor] | None = None,
+    ) -> tuple[np.ndarray, PlannerLabels | None]:
         n, nw, p, k = len(targets), env.batch_size[0], env.num_pieces, self.k
         if nw < k:
             raise ValueError(f"lookahead k={k} needs at least k worlds, the env has {nw}")
@@ -140,8 +149,13 @@ class Lookahead:
             return chosen, None
         # Rows in (chunk, step, target) order; each tensor's rows line up.
         cat = {key: torch.cat(v) for key, v in rec.items() if v}
-        return chosen, PlannerLabels(observation=cat["observation"], candidates=cat["candidates"], iou=cat["iou"],
-                                     step=cat["step"], extra=cat.get("extra"))
+        return chosen, PlannerLabels(
+            observation=cat["observation"],
+            candidates=cat["candidates"],
+            iou=cat["iou"],
+            step=cat["step"],
+            extra=cat.get("extra"),
+        )
 
     def actor(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None = None) -> Actor:
         """An actor that plays the planned episodes of ``targets`` through

@@ -25,8 +25,16 @@ from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperato
 from mrchaos.core.raster import View
 from mrchaos.env.actions import ActionGrid
 
-__all__ = ["PolicyConfig", "FactorisedCategorical", "GridCategorical", "build_actor_critic", "compile_networks",
-           "count_parameters", "unravel_actions", "POLICIES"]
+__all__ = [
+    "PolicyConfig",
+    "FactorisedCategorical",
+    "GridCategorical",
+    "build_actor_critic",
+    "compile_networks",
+    "count_parameters",
+    "unravel_actions",
+    "POLICIES",
+]
 
 POLICIES = ("paper", "spatial")
 
@@ -77,8 +85,9 @@ class PolicyConfig:
         if self.mode_window < 1 or self.mode_window % 2 == 0:
             raise ValueError(f"policy.mode_window must be odd and >= 1, got {self.mode_window}")
         if self.name != "spatial" and self.mode_window != 1:
-            raise ValueError(f"policy.mode_window needs the spatial policy (one score per grid action), got "
-                             f"{self.name!r}")
+            raise ValueError(
+                f"policy.mode_window needs the spatial policy (one score per grid action), got {self.name!r}"
+            )
 
 
 class FactorisedCategorical(Distribution):
@@ -251,9 +260,12 @@ class PaperTrunk(nn.Module):
         c1, c2, c3 = cfg.channels
         self.pool = cfg.pool
         self.conv = nn.Sequential(
-            nn.Conv2d(2, c1, 8, stride=4), nn.ReLU(),
-            nn.Conv2d(c1, c2, 4, stride=2), nn.ReLU(),
-            nn.Conv2d(c2, c3, 3, stride=1), nn.ReLU(),
+            nn.Conv2d(2, c1, 8, stride=4),
+            nn.ReLU(),
+            nn.Conv2d(c1, c2, 4, stride=2),
+            nn.ReLU(),
+            nn.Conv2d(c2, c3, 3, stride=1),
+            nn.ReLU(),
             nn.Flatten(),
         )
         with torch.no_grad():
@@ -290,18 +302,23 @@ class SpatialTrunk(nn.Module):
         self.pool = cfg.pool
         patch = max(1, 4 // cfg.pool)
         self.enc = nn.Sequential(
-            nn.Conv2d(2, c1, patch, stride=patch), nn.ReLU(),
-            nn.Conv2d(c1, c2, 3, padding=1), nn.ReLU(),
-            nn.Conv2d(c2, c3, 3, padding=2, dilation=2), nn.ReLU(),
+            nn.Conv2d(2, c1, patch, stride=patch),
+            nn.ReLU(),
+            nn.Conv2d(c1, c2, 3, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(c2, c3, 3, padding=2, dilation=2),
+            nn.ReLU(),
         )
         self.context = None
         if cfg.context:
             w = cfg.context
-            self.context = nn.ModuleDict({
-                "down": nn.Conv2d(c3, w, 3, stride=2, padding=1),
-                "blocks": nn.ModuleList(nn.Conv2d(w, w, 3, padding=d, dilation=d) for d in (1, 2, 4)),
-                "up": nn.Conv2d(w, c3, 1),
-            })
+            self.context = nn.ModuleDict(
+                {
+                    "down": nn.Conv2d(c3, w, 3, stride=2, padding=1),
+                    "blocks": nn.ModuleList(nn.Conv2d(w, w, 3, padding=d, dilation=d) for d in (1, 2, 4)),
+                    "up": nn.Conv2d(w, c3, 1),
+                }
+            )
             # Zero-initialised way back: the net starts as the one without the path and learns
             # how much context to add.
             nn.init.zeros_(self.context["up"].weight)
@@ -398,21 +415,34 @@ def build_actor_critic(cfg: PolicyConfig, grid: ActionGrid, view: View, action_s
     size = view.size
     if cfg.name == "paper":
         common = TensorDictModule(PaperTrunk(cfg, size), in_keys=["observation"], out_keys=["hidden"])
-        head = TensorDictModule(PaperHeads(cfg.hidden, grid), in_keys=["hidden"],
-                                out_keys=["logits_x", "logits_y", "logits_t"])
+        head = TensorDictModule(
+            PaperHeads(cfg.hidden, grid), in_keys=["hidden"], out_keys=["logits_x", "logits_y", "logits_t"]
+        )
         actor = ProbabilisticActor(
-            head, in_keys=["logits_x", "logits_y", "logits_t"], out_keys=["action"], spec=action_spec,
-            distribution_class=FactorisedCategorical, return_log_prob=True,
+            head,
+            in_keys=["logits_x", "logits_y", "logits_t"],
+            out_keys=["action"],
+            spec=action_spec,
+            distribution_class=FactorisedCategorical,
+            return_log_prob=True,
         )
         value = ValueOperator(_Value(cfg.hidden), in_keys=["hidden"])
     else:
         trunk = SpatialTrunk(cfg, size).to(memory_format=torch.channels_last)
         common = TensorDictModule(trunk, in_keys=["observation"], out_keys=["features", "hidden"])
-        head = TensorDictModule(SpatialHead(trunk.out_channels, trunk.cells, grid, view, cfg.upsample),
-                                in_keys=["features"], out_keys=["logits"])
+        head = TensorDictModule(
+            SpatialHead(trunk.out_channels, trunk.cells, grid, view, cfg.upsample),
+            in_keys=["features"],
+            out_keys=["logits"],
+        )
         actor = ProbabilisticActor(
-            head, in_keys=["logits"], out_keys=["action"], spec=action_spec,
-            distribution_class=GridCategorical, distribution_kwargs={"window": cfg.mode_window}, return_log_prob=True,
+            head,
+            in_keys=["logits"],
+            out_keys=["action"],
+            spec=action_spec,
+            distribution_class=GridCategorical,
+            distribution_kwargs={"window": cfg.mode_window},
+            return_log_prob=True,
         )
         value = ValueOperator(_Value(cfg.hidden), in_keys=["hidden"])
     return ActorValueOperator(common, actor, value)

@@ -50,8 +50,20 @@ log = logging.getLogger("mrchaos.learn.ppo")
 TRAIN_KEYS = ("observation", "action", "action_log_prob", "advantage", "value_target", "state_value")
 LOSS_KEYS = ("loss_objective", "loss_critic", "loss_entropy", "entropy")
 CSV_FIELDS = [
-    "iteration", "frames", "episodes", "minutes", "sps", "stage", "reward", "rela", "final",
-    *LOSS_KEYS, "collect_s", "update_s", *(f"term_{k}" for k in REWARD_TERMS), "lr",
+    "iteration",
+    "frames",
+    "episodes",
+    "minutes",
+    "sps",
+    "stage",
+    "reward",
+    "rela",
+    "final",
+    *LOSS_KEYS,
+    "collect_s",
+    "update_s",
+    *(f"term_{k}" for k in REWARD_TERMS),
+    "lr",
 ]
 
 
@@ -78,8 +90,10 @@ class Trainer:
 
         n = cfg.env.num_worlds
         if cfg.collector.frames_per_batch % n:
-            raise ValueError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple "
-                             f"of env.num_worlds ({n})")
+            raise ValueError(
+                f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple "
+                f"of env.num_worlds ({n})"
+            )
         # The curriculum stage: the env reads it, and the collector hands it to its workers.
         self.stage = torch.tensor(GLOBAL if cfg.curriculum.stages == "global" else LOCAL)
         self.env = make_env(cfg, cfg.seed, stage=self.stage)
@@ -99,8 +113,11 @@ class Trainer:
         # intermediate features and logits (for the spatial net, gigabytes per batch).
         self.precision = resolve_precision(cfg.precision, self.device)
         self.collect_policy = Autocast(
-            TensorDictSequential(self.policy, self.actor_critic.get_value_head(),
-                                 selected_out_keys=["action", "action_log_prob", "state_value"]),
+            TensorDictSequential(
+                self.policy,
+                self.actor_critic.get_value_head(),
+                selected_out_keys=["action", "action_log_prob", "state_value"],
+            ),
             self.precision,
         )
         # GAE reads the values :meth:`values` writes: the collector's, shifted along time for
@@ -109,9 +126,12 @@ class Trainer:
         # The critic gets only its head: the actor's pass has already written the shared
         # trunk's output, so the trunk runs once per minibatch instead of twice.
         self.loss = ClipPPOLoss(
-            self.policy, self.actor_critic.get_value_head(), clip_epsilon=cfg.loss.clip_epsilon,
+            self.policy,
+            self.actor_critic.get_value_head(),
+            clip_epsilon=cfg.loss.clip_epsilon,
             entropy_coeff=cfg.loss.entropy_coeff,
-            critic_coeff=cfg.loss.critic_coeff, normalize_advantage=cfg.loss.normalize_advantage,
+            critic_coeff=cfg.loss.critic_coeff,
+            normalize_advantage=cfg.loss.normalize_advantage,
             loss_critic_type="smooth_l1",
         )
         self.optim = torch.optim.Adam(self.loss.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
@@ -130,8 +150,14 @@ class Trainer:
         if resume and self.csv_path.exists():
             self._truncate_metrics()
         rerun_file = "recording.rrd" if not resume else f"recording.resume{self.iteration}.rrd"
-        self.loggers = RunLoggers(cfg.logger.backends, cfg.name, self.run_dir, rerun_file=rerun_file,
-                                  online=cfg.logger.online, project=cfg.logger.project)
+        self.loggers = RunLoggers(
+            cfg.logger.backends,
+            cfg.name,
+            self.run_dir,
+            rerun_file=rerun_file,
+            online=cfg.logger.online,
+            project=cfg.logger.project,
+        )
         self.loggers.log_hparams(config_to_dict(cfg))
         # Last: worker processes and Ray actors start here.
         self.collector = make_collector(cfg, self.env, self.collect_policy, self.stage)
@@ -146,11 +172,15 @@ class Trainer:
             "model": self.actor_critic.state_dict(),
             "optim": self.optim.state_dict(),
             "curriculum": {
-                "stage": int(self.curriculum.stage), "switched_at": int(self.curriculum.switched_at),
+                "stage": int(self.curriculum.stage),
+                "switched_at": int(self.curriculum.switched_at),
                 **self.curriculum.extra_state(),
             },
-            "rng": {"torch": torch.get_rng_state(), "env": self.base.rng_state(),
-                    **({"cuda": torch.cuda.get_rng_state_all()} if self.device.type == "cuda" else {})},
+            "rng": {
+                "torch": torch.get_rng_state(),
+                "env": self.base.rng_state(),
+                **({"cuda": torch.cuda.get_rng_state_all()} if self.device.type == "cuda" else {}),
+            },
             "iteration": self.iteration,
             "frames": self.frames,
             "episodes": self.episodes,
@@ -231,8 +261,11 @@ class Trainer:
             data = data.reshape(-1, data.shape[-1])  # (worlds, time), also for multi-worker batches
             k = min(self.cfg.logger.image_worlds, data.shape[0])
             rerun.log_worlds(
-                self.iteration, data["observation"][:k, -1].cpu().numpy(), data["action"][:k, -1].cpu().numpy(),
-                data["next", "reward"][:k, -1, 0].cpu().numpy(), (self.base.grid.xs, self.base.grid.ys),
+                self.iteration,
+                data["observation"][:k, -1].cpu().numpy(),
+                data["action"][:k, -1].cpu().numpy(),
+                data["next", "reward"][:k, -1, 0].cpu().numpy(),
+                (self.base.grid.xs, self.base.grid.ys),
                 self.base.view.extent,
             )
 
@@ -309,8 +342,10 @@ class Trainer:
             "reward": float(data["next", "reward"].mean()),
             "rela": float(step_cov.mean()) if len(step_cov) else float("nan"),
             "final": float(finals.mean()) if len(finals) else float("nan"),
-            **{f"term_{k}": float(terms[k][..., 0][acted].mean()) if acted.any() else float("nan")
-               for k in terms.keys()},
+            **{
+                f"term_{k}": float(terms[k][..., 0][acted].mean()) if acted.any() else float("nan")
+                for k in terms.keys()
+            },
         }
 
     # ------------------------------------------------------------------ loop
@@ -347,15 +382,28 @@ class Trainer:
                 self.collector.update_policy_weights_()
                 update_s = time.perf_counter() - t_update
                 row = {
-                    "iteration": self.iteration, "frames": self.frames, "episodes": self.episodes,
-                    "minutes": round(self.minutes, 3), "sps": data.numel() / (collect_s + update_s), "stage": stage,
-                    "collect_s": round(collect_s, 3), "update_s": round(update_s, 3), **seen, **losses, "lr": lr,
+                    "iteration": self.iteration,
+                    "frames": self.frames,
+                    "episodes": self.episodes,
+                    "minutes": round(self.minutes, 3),
+                    "sps": data.numel() / (collect_s + update_s),
+                    "stage": stage,
+                    "collect_s": round(collect_s, 3),
+                    "update_s": round(update_s, 3),
+                    **seen,
+                    **losses,
+                    "lr": lr,
                 }
                 self._log(row, data)
                 if bar is not None:
                     bar.update(data.numel())
-                    bar.set_postfix(sps=f"{row['sps']:.0f}", reward=f"{row['reward']:.3f}", rela=f"{row['rela']:.3f}",
-                                    stage=stage, refresh=False)
+                    bar.set_postfix(
+                        sps=f"{row['sps']:.0f}",
+                        reward=f"{row['reward']:.3f}",
+                        rela=f"{row['rela']:.3f}",
+                        stage=stage,
+                        refresh=False,
+                    )
                 if self.iteration % max(1, cfg.checkpoint.every) == 0:
                     self.save()
                 if self._should_stop():
@@ -375,8 +423,10 @@ class Trainer:
     def progress(self) -> float:
         """The used fraction of the run's budget: the larger of its frames' and its minutes' (0 without one)."""
         c = self.cfg.collector
-        return max(self.frames / c.total_frames if c.total_frames > 0 else 0.0,
-                   self.minutes / c.max_minutes if c.max_minutes > 0 else 0.0)
+        return max(
+            self.frames / c.total_frames if c.total_frames > 0 else 0.0,
+            self.minutes / c.max_minutes if c.max_minutes > 0 else 0.0,
+        )
 
     def _should_stop(self) -> bool:
         over_frames = 0 < self.cfg.collector.total_frames <= self.frames

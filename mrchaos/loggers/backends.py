@@ -57,8 +57,15 @@ class RunLoggers:
         project: the W&B project and MLflow experiment.
     """
 
-    def __init__(self, backends: list[str], name: str, run_dir: str | Path, rerun_file: str = "recording.rrd",
-                 online: bool = False, project: str = "mrchaos") -> None:
+    def __init__(
+        self,
+        backends: list[str],
+        name: str,
+        run_dir: str | Path,
+        rerun_file: str = "recording.rrd",
+        online: bool = False,
+        project: str = "mrchaos",
+    ) -> None:
         check_backends(backends)
         for b in backends:
             pkg = LOGGER_BACKENDS[b]
@@ -77,8 +84,12 @@ class RunLoggers:
             return RerunLogger(name, str(run_dir), file_name=rerun_file)
         if backend == "wandb":
             (run_dir / "wandb").mkdir(parents=True, exist_ok=True)
-            return get_logger("wandb", str(run_dir), name,
-                              wandb_kwargs={"offline": not online, "project": project, "save_dir": str(run_dir)})
+            return get_logger(
+                "wandb",
+                str(run_dir),
+                name,
+                wandb_kwargs={"offline": not online, "project": project, "save_dir": str(run_dir)},
+            )
         if backend == "mlflow":
             uri = os.environ.get("MLFLOW_TRACKING_URI") if online else None
             if online and not uri:

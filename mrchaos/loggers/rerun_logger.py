@@ -88,8 +88,11 @@ class RerunLogger(Logger):
             x, y = grid_xy[0][act[0]], grid_xy[1][act[1]]
             px = (x + extent / 2) / extent * size
             py = (extent / 2 - y) / extent * size
-            rr.log(f"{base}/view/action", rr.Points2D([[px, py]], radii=2.0, labels=[f"θ#{int(act[2])}"]),
-                   recording=self.experiment)
+            rr.log(
+                f"{base}/view/action",
+                rr.Points2D([[px, py]], radii=2.0, labels=[f"θ#{int(act[2])}"]),
+                recording=self.experiment,
+            )
             rr.log(f"{base}/reward", rr.Scalars(float(rew)), recording=self.experiment)
 
 
@@ -109,8 +112,9 @@ class EpisodeRecorder:
         self.extent = extent
         self._scene_frames: dict[str, int] = {}
 
-    def log_episodes(self, policy: str, family: str, ids: Sequence[str], res,
-                     piece_names: Sequence[str] | None = None) -> None:
+    def log_episodes(
+        self, policy: str, family: str, ids: Sequence[str], res, piece_names: Sequence[str] | None = None
+    ) -> None:
         """Every recorded step of ``res``; ``piece_names`` when the episodes' piece set is not
         the recorder's (a family may mix piece sets, e.g. 3 to 6 soda cans)."""
         names = list(piece_names) if piece_names is not None else self.piece_names
@@ -125,8 +129,11 @@ class EpisodeRecorder:
                 a = rec["action"][k]
                 x, y = self.grid_xy[0][a[0]], self.grid_xy[1][a[1]]
                 px, py = (x + self.extent / 2) / self.extent * size, (self.extent / 2 - y) / self.extent * size
-                rr.log(f"{base}/view/action", rr.Points2D([[px, py]], radii=2.0,
-                       labels=[f"{names[rec['t']]} θ#{int(a[2])}"]), recording=self.stream)
+                rr.log(
+                    f"{base}/view/action",
+                    rr.Points2D([[px, py]], radii=2.0, labels=[f"{names[rec['t']]} θ#{int(a[2])}"]),
+                    recording=self.stream,
+                )
                 for i, name in enumerate(names):
                     rr.log(f"{base}/coverage/{name}", rr.Scalars(float(rec["coverage"][k][i])), recording=self.stream)
                 rr.log(f"{base}/reward", rr.Scalars(float(rec["reward"][k])), recording=self.stream)

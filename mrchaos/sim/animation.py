@@ -29,9 +29,16 @@ class SceneRenderer:
             the table from the side opposite the robot.
     """
 
-    def __init__(self, model: mujoco.MjModel, width: int = 320, height: int = 240,
-                 lookat: tuple[float, float, float] = (0.12, -0.12, 0.08), distance: float = 1.25,
-                 azimuth: float = 120.0, elevation: float = -40.0) -> None:
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        width: int = 320,
+        height: int = 240,
+        lookat: tuple[float, float, float] = (0.12, -0.12, 0.08),
+        distance: float = 1.25,
+        azimuth: float = 120.0,
+        elevation: float = -40.0,
+    ) -> None:
         self.model = model
         self.renderer = make_renderer(model, height=height, width=width)
         self.data = mujoco.MjData(model)

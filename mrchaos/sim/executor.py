@@ -89,8 +89,15 @@ def min_jerk(n: int) -> np.ndarray:
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     w1, x1, y1, z1 = np.moveaxis(a, -1, 0)
     w2, x2, y2, z2 = np.moveaxis(b, -1, 0)
-    return np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], -1)
+    return np.stack(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ],
+        -1,
+    )
 
 
 def _quat_conj(q: np.ndarray) -> np.ndarray:
@@ -131,8 +138,15 @@ class Executor:
             equivalent target angle nearest the piece's current one.
     """
 
-    def __init__(self, batch: mujoco.batch.Batch, robot: Robot, piece_bodies: np.ndarray, thickness: np.ndarray,
-                 period: np.ndarray, cfg: ExecutorConfig = ExecutorConfig()) -> None:
+    def __init__(
+        self,
+        batch: mujoco.batch.Batch,
+        robot: Robot,
+        piece_bodies: np.ndarray,
+        thickness: np.ndarray,
+        period: np.ndarray,
+        cfg: ExecutorConfig = ExecutorConfig(),
+    ) -> None:
         self.batch, self.robot, self.cfg = batch, robot, cfg
         m = robot.model
         self.dt = m.opt.timestep
@@ -147,8 +161,9 @@ class Executor:
         self.xquat = batch.bind("xquat")
         self.welds = np.array([m.equality(f"suction_{m.body(b).name}").id for b in self.piece_bodies])
         self.touch_adr = m.sensor_adr[m.sensor("cup_touch").id]
-        self.contact_adr = np.array([m.sensor_adr[m.sensor(f"arm_contact_{m.body(b).name}").id]
-                                     for b in self.piece_bodies])
+        self.contact_adr = np.array(
+            [m.sensor_adr[m.sensor(f"arm_contact_{m.body(b).name}").id] for b in self.piece_bodies]
+        )
         self.piece_qadr = m.jnt_qposadr[m.body_jntadr[self.piece_bodies]]
         self.ready = np.asarray(m.key("home").qpos)[robot.qadr]
         self.nu = m.nu
@@ -163,8 +178,9 @@ class Executor:
         self.simulated_seconds = 0.0
 
     # ------------------------------------------------------------- planning
-    def _path(self, q0: np.ndarray, start: np.ndarray, end: np.ndarray, yaw0: np.ndarray, yaw1: np.ndarray,
-              seconds: float) -> tuple[np.ndarray, np.ndarray]:
+    def _path(
+        self, q0: np.ndarray, start: np.ndarray, end: np.ndarray, yaw0: np.ndarray, yaw1: np.ndarray, seconds: float
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Joint targets per substep (m, nstep, 6) of a straight TCP motion, and whether it is reachable."""
         k = self.cfg.waypoints
         qs, ok, q = [q0], np.ones(len(q0), dtype=bool), q0
@@ -201,8 +217,7 @@ class Executor:
         vel = np.diff(arm, axis=1, prepend=arm[:, :1]) / self.dt
         control[:, :, self.robot.actuators] = arm + vel * self._lead
         record = ["sensordata", "qpos"] if self.capture_fps > 0 else ["sensordata"]
-        out = self.batch.rollout(nstep=arm.shape[1], control=control, control_spec=self._spec,
-                                 record=record, ids=rows)
+        out = self.batch.rollout(nstep=arm.shape[1], control=control, control_spec=self._spec, record=record, ids=rows)
         self.ctrl[rows] = control[:, -1]
         self.simulated_seconds += arm.shape[1] * self.dt * len(rows)
         if self.capture_fps > 0:
@@ -226,8 +241,9 @@ class Executor:
         self.eq_active[rows, self.welds[piece]] = 0.0
 
     # ------------------------------------------------------------- placement
-    def execute(self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, floor: np.ndarray,
-                travel: np.ndarray) -> ExecutionResult:
+    def execute(
+        self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, floor: np.ndarray, travel: np.ndarray
+    ) -> ExecutionResult:
         """Pick ``piece[i]`` in world ``rows[i]`` and place its centroid at planar ``pose[i]``.
 
         ``floor`` is the height of the surface under the target (m) and ``travel`` the
@@ -282,7 +298,7 @@ class Executor:
 
         sd = self._run(rows, plan(approach, descend, self._hold(q_grip, cfg.seal)))
         contact |= collided(sd)
-        touch = sd[:, -max(1, round(cfg.seal / self.dt)):, self.touch_adr].max(1) > 0
+        touch = sd[:, -max(1, round(cfg.seal / self.dt)) :, self.touch_adr].max(1) > 0
         grip = touch & reachable
         g = np.flatnonzero(grip)
         if len(g):
@@ -296,8 +312,7 @@ class Executor:
             self._suction_off(rows[g], piece[g])
         sd = self._run(rows, plan(self._hold(q_rel, cfg.release), up, home))
         contact |= collided(sd)
-        return ExecutionResult(unreachable=still, missed=reachable & ~touch, dropped=grip & ~held,
-                               collision=contact)
+        return ExecutionResult(unreachable=still, missed=reachable & ~touch, dropped=grip & ~held, collision=contact)
 
     def _tcp(self, q: np.ndarray) -> np.ndarray:
         return np.stack([self.robot.tcp_pose(qi)[:3, 3] for qi in q])

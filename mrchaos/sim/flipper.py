@@ -93,30 +93,70 @@ def flipper_geometry(piece_set: PieceSet, view: View, cfg: FlipperConfig = Flipp
     return FlipperGeometry(hinge_x, cfg.y, height, side, height + cfg.plate_thickness / 2)
 
 
-def attach_flipper(spec: mujoco.MjSpec, piece_bodies: list[str], geometry: FlipperGeometry,
-                   cfg: FlipperConfig = FlipperConfig(), weld_solref: tuple[float, float] = (0.004, 1.0)) -> None:
+def attach_flipper(
+    spec: mujoco.MjSpec,
+    piece_bodies: list[str],
+    geometry: FlipperGeometry,
+    cfg: FlipperConfig = FlipperConfig(),
+    weld_solref: tuple[float, float] = (0.004, 1.0),
+) -> None:
     """Add the fixture to a scene spec: a bracket, the hinged plate with its position actuator,
     and one weld per piece (the plate's suction, off by default)."""
     g = geometry
     bracket = spec.worldbody.add_body(name="flipper_bracket", pos=[g.hinge_x, g.y, g.height])
-    bracket.add_geom(name="flipper_bracket_visual", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
-                     size=[0.004, g.side / 2, 0], quat=[math.cos(math.pi / 4), math.sin(math.pi / 4), 0, 0],
-                     contype=0, conaffinity=0, group=2, density=0, rgba=[0.3, 0.3, 0.3, 1])
+    bracket.add_geom(
+        name="flipper_bracket_visual",
+        type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+        size=[0.004, g.side / 2, 0],
+        quat=[math.cos(math.pi / 4), math.sin(math.pi / 4), 0, 0],
+        contype=0,
+        conaffinity=0,
+        group=2,
+        density=0,
+        rgba=[0.3, 0.3, 0.3, 1],
+    )
     plate = bracket.add_body(name="flipper_plate")
-    plate.add_joint(name="flipper_hinge", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 1, 0],
-                    range=[-0.1, math.pi + 0.1], damping=0.0, armature=0.001)
-    plate.add_geom(name="flipper_plate", type=mujoco.mjtGeom.mjGEOM_BOX,
-                   size=[g.side / 2, g.side / 2, cfg.plate_thickness / 2], pos=[-g.side / 2, 0, 0],
-                   mass=0.05, group=3, contype=1, conaffinity=1, friction=[0.8, 0.005, 0.0001],
-                   rgba=[0.7, 0.7, 0.75, 1])
+    plate.add_joint(
+        name="flipper_hinge",
+        type=mujoco.mjtJoint.mjJNT_HINGE,
+        axis=[0, 1, 0],
+        range=[-0.1, math.pi + 0.1],
+        damping=0.0,
+        armature=0.001,
+    )
+    plate.add_geom(
+        name="flipper_plate",
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=[g.side / 2, g.side / 2, cfg.plate_thickness / 2],
+        pos=[-g.side / 2, 0, 0],
+        mass=0.05,
+        group=3,
+        contype=1,
+        conaffinity=1,
+        friction=[0.8, 0.005, 0.0001],
+        rgba=[0.7, 0.7, 0.75, 1],
+    )
     plate.add_site(name="flipper_plate_centre", pos=[-g.side / 2, 0, cfg.plate_thickness / 2], size=[0.003, 0, 0])
-    spec.add_actuator(name="flipper_hinge", trntype=mujoco.mjtTrn.mjTRN_JOINT, target="flipper_hinge",
-                      gaintype=mujoco.mjtGain.mjGAIN_FIXED, gainprm=[cfg.kp] + [0] * 9,
-                      biastype=mujoco.mjtBias.mjBIAS_AFFINE, biasprm=[0, -cfg.kp, -cfg.damping] + [0] * 7,
-                      ctrlrange=[-0.1, math.pi + 0.1])
+    spec.add_actuator(
+        name="flipper_hinge",
+        trntype=mujoco.mjtTrn.mjTRN_JOINT,
+        target="flipper_hinge",
+        gaintype=mujoco.mjtGain.mjGAIN_FIXED,
+        gainprm=[cfg.kp] + [0] * 9,
+        biastype=mujoco.mjtBias.mjBIAS_AFFINE,
+        biasprm=[0, -cfg.kp, -cfg.damping] + [0] * 7,
+        ctrlrange=[-0.1, math.pi + 0.1],
+    )
     for name in piece_bodies:
-        spec.add_equality(name=f"flipper_{name}", type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY,
-                          name1="flipper_plate", name2=name, active=False, solref=list(weld_solref))
+        spec.add_equality(
+            name=f"flipper_{name}",
+            type=mujoco.mjtEq.mjEQ_WELD,
+            objtype=mujoco.mjtObj.mjOBJ_BODY,
+            name1="flipper_plate",
+            name2=name,
+            active=False,
+            solref=list(weld_solref),
+        )
 
 
 class Flipper:
@@ -130,8 +170,14 @@ class Flipper:
         cfg: its motion and tolerances.
     """
 
-    def __init__(self, batch: mujoco.batch.Batch, model: mujoco.MjModel, piece_bodies: np.ndarray,
-                 geometry: FlipperGeometry, cfg: FlipperConfig = FlipperConfig()) -> None:
+    def __init__(
+        self,
+        batch: mujoco.batch.Batch,
+        model: mujoco.MjModel,
+        piece_bodies: np.ndarray,
+        geometry: FlipperGeometry,
+        cfg: FlipperConfig = FlipperConfig(),
+    ) -> None:
         self.batch, self.geometry, self.cfg = batch, geometry, cfg
         self.piece_bodies = np.asarray(piece_bodies)
         self.dt = model.opt.timestep
@@ -149,8 +195,9 @@ class Flipper:
         n = max(1, round(seconds / self.dt))
         control = np.repeat(self.ctrl[rows][:, None], n, 1)
         control[:, :, self.actuator] = start + (end - start) * min_jerk(n)[None]
-        self.batch.rollout(nstep=n, control=control, control_spec=int(mujoco.mjtState.mjSTATE_CTRL),
-                           record=["qpos"], ids=rows)
+        self.batch.rollout(
+            nstep=n, control=control, control_spec=int(mujoco.mjtState.mjSTATE_CTRL), record=["qpos"], ids=rows
+        )
         self.ctrl[rows] = control[:, -1]
         self.simulated_seconds += n * self.dt * len(rows)
 
@@ -175,8 +222,9 @@ class Flipper:
         return expect, near & (up < -math.cos(cfg.tilt))
 
 
-def landing_error(piece: Piece, footprints: np.ndarray, pose: np.ndarray, mirrored: bool = True
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def landing_error(
+    piece: Piece, footprints: np.ndarray, pose: np.ndarray, mirrored: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
     """How far convex pieces landed from commanded centroid poses (m, 3): (m,) distance (m) and (m,) angle
     (rad, modulo the piece's symmetry), infinite where a piece does not lie flat on the given face.
 

@@ -81,8 +81,9 @@ def _wrap_near(q: np.ndarray, ref: np.ndarray, lower: np.ndarray, upper: np.ndar
     return np.where(out < lower, out + 2 * np.pi, out)
 
 
-def ik(target: np.ndarray, ref: np.ndarray, dh: DH = UR5E, weights: np.ndarray | None = None
-       ) -> tuple[np.ndarray, np.ndarray]:
+def ik(
+    target: np.ndarray, ref: np.ndarray, dh: DH = UR5E, weights: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Joint angles reaching flange poses ``target`` (..., 4, 4), nearest ``ref`` (..., 6).
 
     Returns ``(q, ok)``: q (..., 6) and ok (...,) False where no solution exists inside
@@ -115,9 +116,13 @@ def ik(target: np.ndarray, ref: np.ndarray, dh: DH = UR5E, weights: np.ndarray |
                 # z1 seen from frame 6 is (s5 c6, -s5 s6, c5); near s5 = 0 the wrist is singular
                 # and theta6 is free: keep the reference's.
                 sing = np.abs(sin5) < 1e-9
-                t6 = np.where(sing, ref[..., 5],
-                              np.arctan2(-(z1 * y6).sum(-1) / np.where(sing, 1, sin5),
-                                         (z1 * x6).sum(-1) / np.where(sing, 1, sin5)))
+                t6 = np.where(
+                    sing,
+                    ref[..., 5],
+                    np.arctan2(
+                        -(z1 * y6).sum(-1) / np.where(sing, 1, sin5), (z1 * x6).sum(-1) / np.where(sing, 1, sin5)
+                    ),
+                )
                 # Frame 4 in frame 1, from the flange pose and the known wrist joints.
                 t01 = _link(t1, d1, 0.0, dh.alpha[0])
                 t45 = _link(t5, dh.d[4], 0.0, dh.alpha[4])

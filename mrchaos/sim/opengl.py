@@ -33,8 +33,9 @@ class RenderingUnavailable(MrchaosError, RuntimeError):
     """No OpenGL backend can draw MuJoCo images on this machine (the message says what to install)."""
 
 
-def choose_backend(environ: Mapping[str, str] | None = None,
-                   find_library: Callable[[str], str | None] = ctypes.util.find_library) -> str:
+def choose_backend(
+    environ: Mapping[str, str] | None = None, find_library: Callable[[str], str | None] = ctypes.util.find_library
+) -> str:
     """The backend to render with: the user's ``MUJOCO_GL``, ``glfw`` with a display, else EGL or OSMesa.
 
     Raises :class:`RenderingUnavailable` when rendering is switched off or no headless library exists.

@@ -26,8 +26,14 @@ from mrchaos.sim.kinematics import DH, UR5E, fk, ik, pose_matrix
 
 __all__ = ["RobotConfig", "Robot", "attach_robot", "default_robot_model"]
 
-_JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
-           "wrist_3_joint")
+_JOINTS = (
+    "shoulder_pan_joint",
+    "shoulder_lift_joint",
+    "elbow_joint",
+    "wrist_1_joint",
+    "wrist_2_joint",
+    "wrist_3_joint",
+)
 
 
 def default_robot_model() -> Path:
@@ -99,26 +105,70 @@ def attach_robot(spec: mujoco.MjSpec, piece_bodies: list[str], cfg: RobotConfig 
         parent, pos, quat = spec.body(_PREFIX + "wrist_3_link"), [0.0, 0.1, 0.0], [-1.0, 1.0, 0.0, 0.0]
     cup = parent.add_body(name="suction_cup", pos=pos, quat=quat)
     shaft = cfg.tool_length - 0.02
-    cup.add_geom(name="cup_shaft", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.02, shaft / 2, 0],
-                 pos=[0, 0, shaft / 2], contype=2, conaffinity=1, group=3, density=0, rgba=[0.2, 0.2, 0.2, 1])
-    cup.add_geom(name="cup_lip", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[cfg.cup_radius, 0.01, 0],
-                 pos=[0, 0, cfg.tool_length - 0.01], contype=2, conaffinity=1, group=3, density=0,
-                 rgba=[0.1, 0.1, 0.1, 1], friction=[1.0, 0.005, 0.0001])
-    cup.add_geom(name="cup_visual", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.02, cfg.tool_length / 2, 0],
-                 pos=[0, 0, cfg.tool_length / 2], contype=0, conaffinity=0, group=2, density=0,
-                 rgba=[0.15, 0.15, 0.15, 1])
+    cup.add_geom(
+        name="cup_shaft",
+        type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+        size=[0.02, shaft / 2, 0],
+        pos=[0, 0, shaft / 2],
+        contype=2,
+        conaffinity=1,
+        group=3,
+        density=0,
+        rgba=[0.2, 0.2, 0.2, 1],
+    )
+    cup.add_geom(
+        name="cup_lip",
+        type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+        size=[cfg.cup_radius, 0.01, 0],
+        pos=[0, 0, cfg.tool_length - 0.01],
+        contype=2,
+        conaffinity=1,
+        group=3,
+        density=0,
+        rgba=[0.1, 0.1, 0.1, 1],
+        friction=[1.0, 0.005, 0.0001],
+    )
+    cup.add_geom(
+        name="cup_visual",
+        type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+        size=[0.02, cfg.tool_length / 2, 0],
+        pos=[0, 0, cfg.tool_length / 2],
+        contype=0,
+        conaffinity=0,
+        group=2,
+        density=0,
+        rgba=[0.15, 0.15, 0.15, 1],
+    )
     cup.add_site(name="tcp", pos=[0, 0, cfg.tool_length], size=[0.003, 0, 0])
     # Contacts on the lip's face count as a seal; the site is the face's thin slab.
-    cup.add_site(name="cup_touch", type=mujoco.mjtGeom.mjGEOM_BOX, pos=[0, 0, cfg.tool_length],
-                 size=[cfg.cup_radius + 0.002, cfg.cup_radius + 0.002, 0.002])
-    spec.add_sensor(name="cup_touch", type=mujoco.mjtSensor.mjSENS_TOUCH, objtype=mujoco.mjtObj.mjOBJ_SITE,
-                    objname="cup_touch")
+    cup.add_site(
+        name="cup_touch",
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        pos=[0, 0, cfg.tool_length],
+        size=[cfg.cup_radius + 0.002, cfg.cup_radius + 0.002, 0.002],
+    )
+    spec.add_sensor(
+        name="cup_touch", type=mujoco.mjtSensor.mjSENS_TOUCH, objtype=mujoco.mjtObj.mjOBJ_SITE, objname="cup_touch"
+    )
     for name in piece_bodies:
-        spec.add_equality(name=f"suction_{name}", type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY,
-                          name1="suction_cup", name2=name, active=False, solref=list(cfg.weld_solref))
-        spec.add_sensor(name=f"arm_contact_{name}", type=mujoco.mjtSensor.mjSENS_CONTACT,
-                        objtype=mujoco.mjtObj.mjOBJ_XBODY, objname=_PREFIX + "base",
-                        reftype=mujoco.mjtObj.mjOBJ_BODY, refname=name, intprm=[1, 0, 1])
+        spec.add_equality(
+            name=f"suction_{name}",
+            type=mujoco.mjtEq.mjEQ_WELD,
+            objtype=mujoco.mjtObj.mjOBJ_BODY,
+            name1="suction_cup",
+            name2=name,
+            active=False,
+            solref=list(cfg.weld_solref),
+        )
+        spec.add_sensor(
+            name=f"arm_contact_{name}",
+            type=mujoco.mjtSensor.mjSENS_CONTACT,
+            objtype=mujoco.mjtObj.mjOBJ_XBODY,
+            objname=_PREFIX + "base",
+            reftype=mujoco.mjtObj.mjOBJ_BODY,
+            refname=name,
+            intprm=[1, 0, 1],
+        )
     for key in list(spec.keys):
         if key.name != "home":
             spec.delete(key)
@@ -147,8 +197,9 @@ class Robot:
         self._calibrate()
 
     def _actuator_of(self, joint: int) -> int:
-        ids = np.flatnonzero((self.model.actuator_trnid[:, 0] == joint)
-                             & (self.model.actuator_trntype == mujoco.mjtTrn.mjTRN_JOINT))
+        ids = np.flatnonzero(
+            (self.model.actuator_trnid[:, 0] == joint) & (self.model.actuator_trntype == mujoco.mjtTrn.mjTRN_JOINT)
+        )
         if len(ids) != 1:
             raise ValueError(f"robot model: joint {self.model.joint(joint).name} needs exactly one position actuator")
         return int(ids[0])
@@ -207,8 +258,10 @@ class Robot:
             step /= 50
         err, self.base, self.tool = best
         if self.base is None or err > 0.01:
-            raise ValueError(f"robot model {self.cfg.model_path()}: its kinematics are not a UR5e's "
-                             f"(best calibration error {err:.3g})")
+            raise ValueError(
+                f"robot model {self.cfg.model_path()}: its kinematics are not a UR5e's "
+                f"(best calibration error {err:.3g})"
+            )
         self.exact = err < 1e-9
         self._base_inv = np.linalg.inv(self.base)
         self._tool_inv = np.linalg.inv(self.tool)

@@ -88,8 +88,16 @@ def _quat_z(theta: float) -> np.ndarray:
 
 def build_scene_xml(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view: View = View()) -> str:
     """MJCF text of the scene."""
-    colours = ["0.89 0.10 0.11", "0.22 0.49 0.72", "0.30 0.69 0.29", "0.60 0.31 0.64",
-               "1.00 0.50 0.00", "0.65 0.34 0.16", "0.97 0.51 0.75", "0.6 0.6 0.6"]
+    colours = [
+        "0.89 0.10 0.11",
+        "0.22 0.49 0.72",
+        "0.30 0.69 0.29",
+        "0.60 0.31 0.64",
+        "1.00 0.50 0.00",
+        "0.65 0.34 0.16",
+        "0.97 0.51 0.75",
+        "0.6 0.6 0.6",
+    ]
     meshes, bodies = [], []
     stage = staging_poses(piece_set, cfg, view)
     home_qpos = []
@@ -104,8 +112,10 @@ def build_scene_xml(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view:
         for j, (part, a) in enumerate(zip(p.parts, areas, strict=True)):
             name = p.name if j == 0 else f"{p.name}_part{j}"
             meshes.append(f'    <mesh name="{name}" vertex="{_fmt(_prism_vertices(part, p.thickness))}"/>')
-            geoms.append(f'      <geom name="{name}" class="collision" type="mesh" mesh="{name}" '
-                         f'mass="{p.mass * a / areas.sum():.6g}"/>')
+            geoms.append(
+                f'      <geom name="{name}" class="collision" type="mesh" mesh="{name}" '
+                f'mass="{p.mass * a / areas.sum():.6g}"/>'
+            )
             geoms.append(f'      <geom name="{name}_visual" class="visual" type="mesh" mesh="{name}" rgba="{rgba}"/>')
         body_geoms = "\n".join(geoms)
         bodies.append(
@@ -155,14 +165,17 @@ def build_scene_xml(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view:
 {chr(10).join(bodies)}
   </worldbody>
   <keyframe>
-    <key name="home" qpos="{' '.join(home_qpos)}"/>
+    <key name="home" qpos="{" ".join(home_qpos)}"/>
   </keyframe>
 </mujoco>
 '''
 
 
 def build_model(
-    piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view: View = View(), robot: RobotConfig | None = None,
+    piece_set: PieceSet,
+    cfg: SceneConfig = SceneConfig(),
+    view: View = View(),
+    robot: RobotConfig | None = None,
     flipper: FlipperConfig | None = None,
 ) -> mujoco.MjModel:
     """Compile the scene of a piece set, with the UR5e and its suction cup when ``robot`` is given,
@@ -176,13 +189,15 @@ def build_model(
     spec = mujoco.MjSpec.from_string(build_scene_xml(piece_set, cfg, view))
     attach_robot(spec, list(piece_set.names), robot)
     if flipper is not None:
-        attach_flipper(spec, list(piece_set.names), flipper_geometry(piece_set, view, flipper), flipper,
-                       robot.weld_solref)
+        attach_flipper(
+            spec, list(piece_set.names), flipper_geometry(piece_set, view, flipper), flipper, robot.weld_solref
+        )
     model = spec.compile()
     arm = Robot(model, robot)
     # Elbow up, wrist down: the branch of the UR's usual home posture.
-    q, ok = arm.solve(np.array([robot.ready]), np.array([0.0]),
-                      np.array([[0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]]))
+    q, ok = arm.solve(
+        np.array([robot.ready]), np.array([0.0]), np.array([[0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]])
+    )
     if not ok[0]:
         raise ValueError(f"robot.ready {robot.ready} is out of the arm's reach from robot.mount {robot.mount}")
     key = spec.key("home")

@@ -150,8 +150,9 @@ class Worlds:
         self._thick = np.array([pc.thickness for pc in piece_set.pieces])
         # Prism vertices of the parts in body frames, padded like the outlines: (P*K, 2V, 3).
         half_t = (self._thick[self._part_piece] / 2)[:, None, None] * np.ones((len(self._parts), self._v, 1))
-        self._prism = np.concatenate([np.concatenate([self._parts, -half_t], -1),
-                                      np.concatenate([self._parts, half_t], -1)], 1)
+        self._prism = np.concatenate(
+            [np.concatenate([self._parts, -half_t], -1), np.concatenate([self._parts, half_t], -1)], 1
+        )
         self._staging = staging_poses(piece_set, scene, view)
         self.placed = np.zeros((n, p), dtype=bool)
         #: (n, P*K, 2V, 2) footprints of the pieces' convex parts (see :meth:`raster`).
@@ -165,14 +166,20 @@ class Worlds:
             period = np.array([pc.symmetry_period for pc in piece_set.pieces])
             self.executor = Executor(self.batch, Robot(self.model, robot), bodies, self._thick, period, executor)
             if flipper is not None:
-                self.flipper = Flipper(self.batch, self.model, bodies, flipper_geometry(piece_set, view, flipper),
-                                       flipper)
+                self.flipper = Flipper(
+                    self.batch, self.model, bodies, flipper_geometry(piece_set, view, flipper), flipper
+                )
         self.batch.reset(keyframe=0)
         self._refresh(np.arange(n))
 
     # ----------------------------------------------------------------- state io
     def _write_flat(
-        self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, z: np.ndarray, vz: float = 0.0,
+        self,
+        rows: np.ndarray,
+        piece: np.ndarray,
+        pose: np.ndarray,
+        z: np.ndarray,
+        vz: float = 0.0,
         mirrored: np.ndarray | None = None,
     ) -> None:
         cols = self._qadr[piece][:, None] + np.arange(7)
@@ -226,13 +233,15 @@ class Worlds:
         for k, (sub, poses, *mirrored) in enumerate(preassembled or []):
             if len(sub):
                 piece = np.full(len(sub), k)
-                self._write_flat(sub, piece, poses, np.full(len(sub), self._thick[k] / 2),
-                                 mirrored=mirrored[0] if mirrored else None)
+                self._write_flat(
+                    sub, piece, poses, np.full(len(sub), self._thick[k] / 2), mirrored=mirrored[0] if mirrored else None
+                )
                 self.placed[sub, k] = True
         self._refresh(rows)
 
-    def place(self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray,
-              mirrored: np.ndarray | None = None) -> PlacementResult:
+    def place(
+        self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, mirrored: np.ndarray | None = None
+    ) -> PlacementResult:
         """Place ``piece[i]`` of world ``rows[i]`` at planar ``pose[i]`` and settle; ``mirrored[i]``
         sets it down turned over.
 
@@ -268,8 +277,14 @@ class Worlds:
             gap = np.where(deep.any(1), self.cfg.release_gap, 0.0)
             # Released moving down, as from a gripper, which also keeps MuJoCo from
             # putting the piece to sleep before it has fallen.
-            self._write_flat(rows[ph], piece[ph], pose[ph], floor + gap + half[ph], vz=-self.cfg.release_speed,
-                             mirrored=_rows_of(mirrored, ph))
+            self._write_flat(
+                rows[ph],
+                piece[ph],
+                pose[ph],
+                floor + gap + half[ph],
+                vz=-self.cfg.release_speed,
+                mirrored=_rows_of(mirrored, ph),
+            )
             self.batch.step(ids=rows[ph], nstep=self.cfg.settle_steps)
             bad = ~np.isfinite(self.qpos[rows[ph]]).all(1)
             if bad.any():  # a diverged world: fall back to the plain placement
@@ -308,8 +323,15 @@ class Worlds:
         self.batch.step(ids=rows, nstep=max(1, round(seconds / self.model.opt.timestep)))
         self._refresh(rows)
 
-    def _place_robot(self, rows: np.ndarray, piece: np.ndarray, pose: np.ndarray, under: np.ndarray,
-                     depth: np.ndarray, mirrored: np.ndarray | None) -> PlacementResult:
+    def _place_robot(
+        self,
+        rows: np.ndarray,
+        piece: np.ndarray,
+        pose: np.ndarray,
+        under: np.ndarray,
+        depth: np.ndarray,
+        mirrored: np.ndarray | None,
+    ) -> PlacementResult:
         """The robot places the pieces; the release height clears what lies under the target. A piece
         to go down mirrored is first set on the flip fixture, turned over, and picked up again."""
         deep = under & (depth > self.cfg.push_depth)
@@ -319,8 +341,10 @@ class Worlds:
         f = np.flatnonzero(mirrored) if mirrored is not None else np.zeros(0, dtype=np.int64)
         if len(f):
             if self.flipper is None:
-                raise ValueError("turning a piece over with the robot needs the flip fixture in the scene "
-                                 "(env.grid.flip with env.placement: robot)")
+                raise ValueError(
+                    "turning a piece over with the robot needs the flip fixture in the scene "
+                    "(env.grid.flip with env.placement: robot)"
+                )
             g = self.flipper.geometry
             # Set down at the yaw that the half turn maps onto the target's.
             on_plate = np.c_[np.tile(g.plate_centre, (len(f), 1)), -pose[f, 2]]
@@ -335,8 +359,9 @@ class Worlds:
         self.placed[rows, piece] = True
         self._refresh(rows)
         self.count_physics += len(rows)
-        return PlacementResult(physics=np.ones(len(rows), dtype=bool),
-                               penetration=self._penetration(rows, piece), robot=res)
+        return PlacementResult(
+            physics=np.ones(len(rows), dtype=bool), penetration=self._penetration(rows, piece), robot=res
+        )
 
     def _penetration(self, rows: np.ndarray, piece: np.ndarray) -> np.ndarray:
         """Depth of the placed piece inside any other placed piece: planar overlap where the
@@ -361,16 +386,18 @@ class Worlds:
         depth = convex_penetration(foot[:, :, None], self.footprint[rows][:, None])  # (m, K, Q)
         return depth.max(1).reshape(len(rows), -1, self._k).max(-1)
 
-    def raster(self, view: View, rows: np.ndarray | None = None, shift: np.ndarray | None = None,
-               need_height: bool = False) -> Raster:
+    def raster(
+        self, view: View, rows: np.ndarray | None = None, shift: np.ndarray | None = None, need_height: bool = False
+    ) -> Raster:
         """Top-down piece-id (and height) images of the placed pieces of worlds ``rows`` (default all),
         optionally shifted by (R, 2) metres (camera jitter)."""
         sel = slice(None) if rows is None else rows
         fp = self.footprint[sel]
         if shift is not None:
             fp = fp + shift[:, None, None, :]
-        return rasterize(fp, view, visible=self.placed[sel], heights=self.top[sel], need_height=need_height,
-                         parts=self._raster_parts)
+        return rasterize(
+            fp, view, visible=self.placed[sel], heights=self.top[sel], need_height=need_height, parts=self._raster_parts
+        )
 
     @property
     def physics_share(self) -> float:

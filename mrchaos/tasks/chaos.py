@@ -78,8 +78,14 @@ def _draw_angles(rng: np.random.Generator, shape: tuple[int, ...], step: float) 
     return rng.integers(0, n, shape) * (2 * math.pi / n) - math.pi
 
 
-def scatter(piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosConfig = ChaosConfig(),
-            view: View = View(), mirrored: np.ndarray | None = None) -> np.ndarray:
+def scatter(
+    piece_set: PieceSet,
+    n: int,
+    rng: np.random.Generator,
+    cfg: ChaosConfig = ChaosConfig(),
+    view: View = View(),
+    mirrored: np.ndarray | None = None,
+) -> np.ndarray:
     """(n, P, 3) poses: pieces at uniformly random poses, non-overlapping, inside the view;
     ``mirrored`` (n, P) bool: pieces that lie turned over."""
     parts = _object_parts(piece_set, n, mirrored)  # (n, P, K, V, 2)
@@ -213,24 +219,32 @@ class ChaosCache:
             the flip have no such array).
     """
 
-    def __init__(self, poses: np.ndarray, modes: np.ndarray, piece_set: str,
-                 mirrored: np.ndarray | None = None) -> None:
+    def __init__(
+        self, poses: np.ndarray, modes: np.ndarray, piece_set: str, mirrored: np.ndarray | None = None
+    ) -> None:
         self.poses = np.asarray(poses, dtype=np.float64)
         self.modes = np.asarray(modes, dtype=np.int8)
         self.piece_set = piece_set
-        self.mirrored = (np.zeros(self.poses.shape[:2], dtype=bool) if mirrored is None
-                         else np.asarray(mirrored, dtype=bool))
-        if (self.poses.ndim != 3 or self.poses.shape[-1] != 3 or len(self.modes) != len(self.poses)
-                or self.mirrored.shape != self.poses.shape[:2]):
-            raise ValueError(f"chaos cache: inconsistent shapes {self.poses.shape} / {self.modes.shape} / "
-                             f"{self.mirrored.shape}")
+        self.mirrored = (
+            np.zeros(self.poses.shape[:2], dtype=bool) if mirrored is None else np.asarray(mirrored, dtype=bool)
+        )
+        if (
+            self.poses.ndim != 3
+            or self.poses.shape[-1] != 3
+            or len(self.modes) != len(self.poses)
+            or self.mirrored.shape != self.poses.shape[:2]
+        ):
+            raise ValueError(
+                f"chaos cache: inconsistent shapes {self.poses.shape} / {self.modes.shape} / {self.mirrored.shape}"
+            )
 
     def __len__(self) -> int:
         return len(self.poses)
 
     @classmethod
-    def build(cls, piece_set: PieceSet, n: int, seed: int, cfg: ChaosConfig = ChaosConfig(),
-              view: View = View()) -> ChaosCache:
+    def build(
+        cls, piece_set: PieceSet, n: int, seed: int, cfg: ChaosConfig = ChaosConfig(), view: View = View()
+    ) -> ChaosCache:
         """Generate ``n`` objects with a seeded generator."""
         poses, modes, mirrored = generate(piece_set, n, np.random.default_rng(seed), cfg, view)
         return cls(poses, modes, piece_set.name, mirrored)
@@ -240,8 +254,9 @@ class ChaosCache:
         from mrchaos.core.atomic import write_atomic
 
         buf = io.BytesIO()
-        np.savez_compressed(buf, poses=self.poses.astype(np.float32), modes=self.modes, piece_set=self.piece_set,
-                            mirrored=self.mirrored)
+        np.savez_compressed(
+            buf, poses=self.poses.astype(np.float32), modes=self.modes, piece_set=self.piece_set, mirrored=self.mirrored
+        )
         write_atomic(path, buf.getvalue())
 
     @classmethod

@@ -56,8 +56,10 @@ def cutlery_goals() -> list[Figure]:
         # Diagonal parallels.
         "diagonal": [(-0.045, 0.045, d), (0.0, 0.0, d), (0.045, -0.045, d)],
     }
-    return [Figure(f"cutlery-{k}", ps, np.array(v), name=k.replace("_", " "), source="mrchaos.tasks.presets")
-            for k, v in goals.items()]
+    return [
+        Figure(f"cutlery-{k}", ps, np.array(v), name=k.replace("_", " "), source="mrchaos.tasks.presets")
+        for k, v in goals.items()
+    ]
 
 
 def _cans(points: list[tuple[float, float]]) -> np.ndarray:
@@ -71,8 +73,10 @@ def soda_goals(pitch: float = 0.070) -> list[Figure]:
     h = p * math.sqrt(3) / 2
 
     def ring(n: int, r: float) -> list[tuple[float, float]]:
-        return [(r * math.cos(2 * math.pi * k / n + math.pi / 2), r * math.sin(2 * math.pi * k / n + math.pi / 2))
-                for k in range(n)]
+        return [
+            (r * math.cos(2 * math.pi * k / n + math.pi / 2), r * math.sin(2 * math.pi * k / n + math.pi / 2))
+            for k in range(n)
+        ]
 
     goals = {
         "row3": [(-p, 0.0), (0.0, 0.0), (p, 0.0)],
@@ -86,8 +90,10 @@ def soda_goals(pitch: float = 0.070) -> list[Figure]:
         "ring6": ring(6, 0.08),
         "diagonal4": [(k * p / math.sqrt(2), k * p / math.sqrt(2)) for k in (-1.5, -0.5, 0.5, 1.5)],
     }
-    return [Figure(f"soda-{k}", get_piece_set(f"soda{len(v)}"), _cans(v), name=k, source="mrchaos.tasks.presets")
-            for k, v in goals.items()]
+    return [
+        Figure(f"soda-{k}", get_piece_set(f"soda{len(v)}"), _cans(v), name=k, source="mrchaos.tasks.presets")
+        for k, v in goals.items()
+    ]
 
 
 @dataclass(frozen=True)
@@ -120,8 +126,7 @@ class TaskPreset:
 
     def config_overrides(self) -> dict:
         """The preset as a nested config fragment, for the loader to lay under a config's own keys."""
-        return {"env": {"piece_set": self.piece_set, **copy.deepcopy(self.env)},
-                "task": {"chaos": dict(self.chaos)}}
+        return {"env": {"piece_set": self.piece_set, **copy.deepcopy(self.env)}, "task": {"chaos": dict(self.chaos)}}
 
     def goal_figures(self, view: View) -> list[Figure]:
         """The validated goals (inside ``view``, no overlaps)."""
@@ -136,12 +141,26 @@ class TaskPreset:
 
 PRESETS: dict[str, TaskPreset] = {
     "tangram": TaskPreset("tangram", "tangram7", random_sets=("tangram7",), families=FAMILIES, authored=False),
-    "cutlery": TaskPreset("cutlery", "cutlery", env={"view": {"extent": 0.40}, "grid": {"half_range": 0.16}},
-                          chaos={"workspace": 0.14}, goals=cutlery_goals, random_sets=("cutlery",)),
-    "soda": TaskPreset("soda", "soda6",
-                       env={"view": {"extent": 0.44}, "grid": {"half_range": 0.18, "ntheta": 1},
-                            "reward": {"twin_slots": "exclusive"}},
-                       chaos={"workspace": 0.15}, goals=soda_goals, random_sets=("soda3", "soda4", "soda5", "soda6")),
+    "cutlery": TaskPreset(
+        "cutlery",
+        "cutlery",
+        env={"view": {"extent": 0.40}, "grid": {"half_range": 0.16}},
+        chaos={"workspace": 0.14},
+        goals=cutlery_goals,
+        random_sets=("cutlery",),
+    ),
+    "soda": TaskPreset(
+        "soda",
+        "soda6",
+        env={
+            "view": {"extent": 0.44},
+            "grid": {"half_range": 0.18, "ntheta": 1},
+            "reward": {"twin_slots": "exclusive"},
+        },
+        chaos={"workspace": 0.15},
+        goals=soda_goals,
+        random_sets=("soda3", "soda4", "soda5", "soda6"),
+    ),
 }
 
 

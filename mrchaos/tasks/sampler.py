@@ -78,8 +78,10 @@ class TaskConfig:
         cannot turn pieces over and a chaos source (fresh or cached) is drawn from: training on
         such targets would pay for faces the policy can never show. Figures are filtered instead."""
         if self.chaos.mirror_prob > 0 and not flip and self.mix.chaos + self.mix.cache > 0:
-            raise ValueError(f"task.chaos.mirror_prob = {self.chaos.mirror_prob} draws chaos objects with "
-                             "turned-over pieces, which need env.grid.flip: true; or set task.chaos.mirror_prob=0")
+            raise ValueError(
+                f"task.chaos.mirror_prob = {self.chaos.mirror_prob} draws chaos objects with "
+                "turned-over pieces, which need env.grid.flip: true; or set task.chaos.mirror_prob=0"
+            )
 
 
 @dataclass
@@ -108,8 +110,14 @@ class TargetSampler:
         flip: the env can turn pieces over, so figures that need a mirrored piece are used, not skipped.
     """
 
-    def __init__(self, piece_set: PieceSet, cfg: TaskConfig | None = None, figures: list[Figure] | None = None,
-                 view: View = View(), flip: bool = False):
+    def __init__(
+        self,
+        piece_set: PieceSet,
+        cfg: TaskConfig | None = None,
+        figures: list[Figure] | None = None,
+        view: View = View(),
+        flip: bool = False,
+    ):
         self.piece_set = piece_set
         cfg = cfg if cfg is not None else TaskConfig()  # a fresh default: the sampler keeps and reads it
         self.cfg = cfg
@@ -129,8 +137,9 @@ class TargetSampler:
             if not flip:
                 self.figures = [f for f in self.figures if not f.has_mirrored]
             if not self.figures:
-                raise ValueError("task: figure weight > 0 but no usable figures (mirrored ones are skipped "
-                                 "without env.grid.flip)")
+                raise ValueError(
+                    "task: figure weight > 0 but no usable figures (mirrored ones are skipped without env.grid.flip)"
+                )
         self._figure_poses = np.stack([f.poses for f in self.figures]) if self.figures else None
         self._figure_mirrored = np.stack([f.mirrored for f in self.figures]) if self.figures else None
 
@@ -142,13 +151,17 @@ class TargetSampler:
             reach = np.abs(self.piece_set.footprints(cache.poses, cache.mirrored)).max()
             half = self.view.extent / 2
             if reach > half:
-                raise ValueError(f"{path}: chaos cache objects reach {reach:.3f} m from the centre, outside this "
-                                 f"view's ±{half:.3f} m; delete it or set task.cache_path to rebuild")
+                raise ValueError(
+                    f"{path}: chaos cache objects reach {reach:.3f} m from the centre, outside this "
+                    f"view's ±{half:.3f} m; delete it or set task.cache_path to rebuild"
+                )
             # A cache drawn with another mirroring rule would train on the wrong faces.
             if cache.mirrored.any() != (self.cfg.chaos.mirror_prob > 0):
                 had = "has" if cache.mirrored.any() else "has no"
-                raise ValueError(f"{path}: chaos cache {had} mirrored pieces but task.chaos.mirror_prob is "
-                                 f"{self.cfg.chaos.mirror_prob}; delete it or set task.cache.path to rebuild")
+                raise ValueError(
+                    f"{path}: chaos cache {had} mirrored pieces but task.chaos.mirror_prob is "
+                    f"{self.cfg.chaos.mirror_prob}; delete it or set task.cache.path to rebuild"
+                )
             return cache
         log.info("building a chaos cache of %d objects", self.cfg.cache.size)
         cache = ChaosCache.build(self.piece_set, self.cfg.cache.size, self.cfg.cache.seed, self.cfg.chaos, self.view)
