@@ -214,6 +214,8 @@ class SupervisedRun:
         self.rows: list[dict] = []
         self.round, self.epoch, self.episodes, self.minutes = 0, 0, 0, 0.0
         self.shards: list[dict[str, torch.Tensor]] = []
+        #: The planner's figures of the round being learnt (logged with its first epoch).
+        self.round_metrics: dict[str, float] = {}
         if resume:
             self._restore()
         elif cfg.init_from:
@@ -277,6 +279,7 @@ class SupervisedRun:
             100 * agree,
             len(lab),
         )
+        assert lab.extra is not None  # on_state labelled every state
         return self._shard(lab.observation, lab.extra, lab.candidates, lab.iou), f"the planner's assemblies of {what}"
 
     def _state_label(self, env: TangramEnv, rows: np.ndarray) -> torch.Tensor:
@@ -299,7 +302,7 @@ class SupervisedRun:
         iou: torch.Tensor | None = None,
     ) -> dict[str, torch.Tensor]:
         k = self.cfg.exit.k
-        if candidates is None:
+        if candidates is None or iou is None:
             candidates = torch.zeros(len(obs), k, 3, dtype=torch.int64)
             iou = torch.full((len(obs), k), float("nan"))
         return {"observation": obs, "label": labels, "candidates": candidates, "iou": iou}
@@ -307,7 +310,7 @@ class SupervisedRun:
     def _load_or_label(self, r: int) -> None:
         """Round ``r``'s data: from its shard if an earlier attempt wrote it, else labelled now."""
         path = self._shard_path(r)
-        self.round_metrics: dict[str, float] = {}
+        self.round_metrics = {}
         if path.exists():
             try:
                 shard = torch.load(path, weights_only=True)
