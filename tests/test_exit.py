@@ -10,6 +10,7 @@ import torch
 from tensordict import TensorDict
 
 from mrchaos.bench.benchmark import Bench, resolve_policy
+from mrchaos.cli.plot import main as plot_main
 from mrchaos.cli.train import main as train_main
 from mrchaos.env.tangram import TangramEnv
 from mrchaos.learn import bc
@@ -102,6 +103,9 @@ def test_a_seconds_long_distillation_run_lowers_its_loss_and_checkpoints_every_r
         st = load_checkpoint(run / "checkpoints" / f"round{r}.pt")
         assert st["supervision"]["round"] == r and st["kind"] == "mrchaos-policy"
     assert resolve_policy(str(run)).kind == "checkpoint"
+    # mrchaos-plot draws such a run by round: the policy's Rela and the planner's.
+    assert plot_main([str(run), "--out", str(tmp_path / "rounds.png")]) == 0
+    assert (tmp_path / "rounds.png").stat().st_size > 1000
     assert sorted(p.name for p in (run / "data").iterdir()) == ["round_0.pt", "round_1.pt", "round_2.pt"]
 
     # The ranking loss alone fits the planner's choices on the states it labelled.

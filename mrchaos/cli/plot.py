@@ -1,6 +1,7 @@
 """``mrchaos-plot RUN [RUN ...] [--x episodes|frames|minutes ...] [--out PNG]``: learning curves like
 the paper's Fig. 4b. A RUN is a run folder or a ``metrics.csv`` (e.g. the ones kept in ``docs/runs/``);
-several ``--x`` give one panel each (Rela against minutes and against frames, say)."""
+several ``--x`` give one panel each (Rela against minutes and against frames, say). Supervised runs
+with expert-iteration rounds are plotted by round: the greedy policy's Rela and the planner's."""
 
 from __future__ import annotations
 
@@ -19,8 +20,17 @@ def _label(run: Path) -> str:
     return run.stem if run.suffix == ".csv" else run.name
 
 
+def _number(text: str) -> float:
+    """A cell as a number; an empty or text cell (a supervised run's round kind) as NaN."""
+    try:
+        return float(text)
+    except ValueError:
+        return float("nan")
+
+
 def read_metrics(run_dir: Path) -> list[dict[str, float]]:
-    """The rows of a run's ``metrics.csv`` (``run_dir`` is the run folder or the file), as floats."""
+    """The rows of a run's ``metrics.csv`` (``run_dir`` is the run folder or the file), as floats (NaN
+    where a cell is empty or text)."""
     path = Path(run_dir)
     if path.suffix != ".csv":
         path = path / "metrics.csv"
@@ -29,7 +39,7 @@ def read_metrics(run_dir: Path) -> list[dict[str, float]]:
     with open(path) as f:
         rows = []
         for r in csv.DictReader(f):
-            rows.append({k: float(v) if v not in ("", "nan") else float("nan") for k, v in r.items()})
+            rows.append({k: _number(v) for k, v in r.items()})
     return rows
 
 
@@ -76,6 +86,38 @@ def plot_runs(run_dirs: list[Path], out: Path, window: int = 10, xs: tuple[str, 
     fig.savefig(out)
 
 
+def plot_rounds(run_dirs: list[Path], out: Path) -> None:
+    """Expert-iteration runs: per round, the greedy policy's Rela on the round's objects and the
+    planner's Rela around it (the policy the round's planner was built around)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
+    for run in run_dirs:
+        rows = [r for r in read_metrics(run) if r.get("planner_rela", float("nan")) == r.get("planner_rela")]
+        if not rows:
+            raise ValueError(f"{run}: metrics.csv has no expert-iteration round (no planner_rela)")
+        rounds = [int(r["round"]) for r in rows]
+        (line,) = ax.plot(rounds, [r["greedy_rela"] for r in rows], "o-", label=f"{_label(run)}: policy (greedy)")
+        ax.plot(
+            rounds,
+            [r["planner_rela"] for r in rows],
+            "s--",
+            color=line.get_color(),
+            label=f"{_label(run)}: planner around it",
+        )
+    ax.set_xticks(sorted({int(r["round"]) for run in run_dirs for r in read_metrics(run) if r["round"] > 0}))
+    ax.set_xlabel("expert-iteration round (the policy of the round before)")
+    ax.set_ylabel("Rela on the round's chaos objects")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="mrchaos-plot", description=__doc__)
     ap.add_argument("runs", nargs="+", type=Path, help="run folders or metrics.csv files")
@@ -86,7 +128,11 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or (first.parent if first.suffix == ".csv" else first) / "learning_curve.png"
 
     def body() -> int:
-        plot_runs(args.runs, out, xs=tuple(args.x))
+        # Supervised runs with expert-iteration rounds are plotted by round.
+        if all("planner_rela" in (read_metrics(r)[:1] or [{}])[0] for r in args.runs):
+            plot_rounds(args.runs, out)
+        else:
+            plot_runs(args.runs, out, xs=tuple(args.x))
         print(f"wrote {out}")
         return 0
 
