@@ -14,6 +14,7 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -280,6 +281,7 @@ class Bench:
             return lambda e, td: (torch.rand((e.batch_size[0], 3), generator=g) * nvec).long()
         policy = self.policy_operator(spec, env)
         if self.lookahead > 1:
+            assert spec.state is not None  # a checkpoint's spec carries its state
             if spec.state["policy"].get("name") != "spatial":
                 raise BenchError(f"{spec.path}: --lookahead needs a spatial policy (one score per grid action)")
             return Lookahead(policy, self.lookahead)
@@ -290,11 +292,12 @@ class Bench:
         checkpoint fits the env (its piece set, view and grid)."""
         from mrchaos.learn.policy import PolicyConfig, build_actor_critic
 
-        st = spec.state
+        st, path = spec.state, spec.path
+        assert st is not None and path is not None  # a checkpoint's spec carries both
         # A policy acts on any piece set of the family it was trained on (e.g. any can count).
         trained = st.get("piece_set")
         same_kind = trained in piece_set_names() and get_piece_set(trained).kind == env.piece_set.kind
-        check_header(st, spec.path, env, piece_set=env.piece_set.name if same_kind else None)
+        check_header(st, path, env, piece_set=env.piece_set.name if same_kind else None)
         if self.mode_window is not None and st["policy"].get("name") != "spatial":
             raise BenchError(f"{spec.path}: --mode-window needs a spatial policy (one score per grid action)")
         try:
@@ -313,7 +316,8 @@ class Bench:
         self.episodes: dict[tuple[str, str], EpisodeResults] = {}
         for spec in specs:
             per_fam = {}
-            envs: dict[str, tuple] = {}  # one env, actor and renderer per piece set, built when first needed
+            # One env, actor and renderer per piece set, built when first needed.
+            envs: dict[str, tuple[TangramEnv, Any, Any]] = {}
             try:
                 for fam, groups in self.targets.items():
                     parts = []
@@ -394,6 +398,7 @@ class Bench:
         out["by_piece"] = piece_breakdown(res.step_coverage)
         if self.placement == "robot":
             # Failures per placement: each episode places every piece once.
+            assert res.failures is not None  # evaluate counts them for every placement
             out["robot_failures"] = {k: float(v.mean() / len(self.piece_set)) for k, v in res.failures.items()}
         if res.perturbation is not None:
             out["perturbation"] = {k: summarise(v) for k, v in res.perturbation.items()}

@@ -222,6 +222,10 @@ def _best_assignment(ratio: torch.Tensor, group: tuple[int, ...]) -> torch.Tenso
         i = bin(taken).count("1") - 1  # the piece that takes the last slot of this set
         for j in range(k):
             if taken >> j & 1:
-                s = best[taken ^ (1 << j)] + ratio[:, group[i], group[j]]
-                best[taken] = s if best[taken] is None else torch.maximum(best[taken], s)
-    return best[-1]
+                prev, cur = best[taken ^ (1 << j)], best[taken]
+                assert prev is not None  # every smaller set is filled before this one
+                s = prev + ratio[:, group[i], group[j]]
+                best[taken] = s if cur is None else torch.maximum(cur, s)
+    out = best[-1]
+    assert out is not None
+    return out

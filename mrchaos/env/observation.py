@@ -53,5 +53,6 @@ def view_image(raster: Raster, cfg: ObservationConfig, thickness: float = 0.010)
     occ = raster.ids >= 0
     if cfg.mode == "binary":
         return occ.to(torch.uint8) * 255
+    assert raster.height is not None, "the levels view needs the raster's heights (need_height)"
     level = torch.ceil(raster.height / thickness - 0.25).clamp(1, cfg.levels)
     return torch.where(occ, (level * (255.0 / cfg.levels)).round(), torch.zeros(())).to(torch.uint8)

@@ -154,7 +154,7 @@ class TangramEnv(EnvBase):
         cfg: EnvConfig | None = None,
         seed: int | None = 0,
         figures: list[Figure] | None = None,
-        device: str = "cpu",
+        device: str | torch.device = "cpu",
     ):
         cfg = cfg if cfg is not None else EnvConfig()  # a fresh default: the env keeps and reads it
         super().__init__(device=device, batch_size=torch.Size([cfg.num_worlds]))
@@ -301,7 +301,9 @@ class TangramEnv(EnvBase):
         ids = rasterize(ps.footprints(tasks.poses, tasks.mirrored), self.view, parts=ps.raster_parts).ids
         self._target_ids[rows] = ids
         self._silhouette[rows] = silhouette_image(ids)
-        pre = [(np.flatnonzero(k > j), tasks.poses[k > j, j], tasks.mirrored[k > j, j]) for j in range(self.num_pieces)]
+        mirrored = tasks.mirrored
+        assert mirrored is not None  # TargetBatch fills it
+        pre = [(np.flatnonzero(k > j), tasks.poses[k > j, j], mirrored[k > j, j]) for j in range(self.num_pieces)]
         self._worlds.reset(rows, [(rows[sub], poses, mirrored) for sub, poses, mirrored in pre])
         self.next_piece[rows] = k
         self.end_piece[rows] = np.where(horizon > 0, np.minimum(k + horizon, self.num_pieces), self.num_pieces)

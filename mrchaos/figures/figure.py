@@ -52,7 +52,7 @@ class Figure:
     id: str
     piece_set: PieceSet
     poses: np.ndarray
-    mirrored: np.ndarray = field(default=None)  # type: ignore[assignment]
+    mirrored: np.ndarray = field(default=None)  # type: ignore[arg-type]  # filled in __post_init__
     name: str = ""
     family: str | None = None
     source: str = ""

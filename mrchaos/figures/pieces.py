@@ -16,6 +16,7 @@ Sets defined here: ``tangram7``, ``cutlery`` (knife, spoon, fork) and ``soda3`` 
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -110,9 +111,15 @@ class Piece:
         """Outline reflected about the y axis, still counter-clockwise and centred."""
         return _mirror(self.outline)
 
+    @property
+    def convex_parts(self) -> tuple[np.ndarray, ...]:
+        """The convex parts whose union is the outline (the outline itself for a convex piece)."""
+        assert self.parts is not None  # __post_init__ sets them
+        return self.parts
+
     def mirrored_parts(self) -> tuple[np.ndarray, ...]:
         """Parts reflected about the y axis."""
-        return tuple(_mirror(q) for q in self.parts)
+        return tuple(_mirror(q) for q in self.convex_parts)
 
 
 def _mirror(poly: np.ndarray) -> np.ndarray:
@@ -236,7 +243,7 @@ class PieceSet:
     @property
     def parts_per_piece(self) -> int:
         """K: the most convex parts of any piece (1 for convex sets)."""
-        return max(len(p.parts) for p in self.pieces)
+        return max(len(p.convex_parts) for p in self.pieces)
 
     @property
     def part_piece(self) -> np.ndarray:
@@ -255,7 +262,7 @@ class PieceSet:
         :meth:`padded_outlines`."""
         k = self.parts_per_piece
         parts = [
-            list(p.mirrored_parts() if (mirrored is not None and mirrored[i]) else p.parts)
+            list(p.mirrored_parts() if (mirrored is not None and mirrored[i]) else p.convex_parts)
             for i, p in enumerate(self.pieces)
         ]
         vmax = max(len(q) for ps in parts for q in ps)
@@ -389,7 +396,7 @@ def soda(n: int = 6) -> PieceSet:
 _REGISTRY: dict[str, Callable[[], PieceSet]] = {
     "tangram7": tangram7,
     "cutlery": cutlery,
-    **{f"soda{n}": (lambda n=n: soda(n)) for n in range(3, 7)},
+    **{f"soda{n}": functools.partial(soda, n) for n in range(3, 7)},
 }
 _CACHE: dict[str, PieceSet] = {}
 

@@ -91,7 +91,7 @@ def pair_sheet(pairs: Sequence[tuple[np.ndarray, np.ndarray, str]], columns: int
         rgb[sil] = (170, 200, 240)
         rgb[occ & sil] = (60, 60, 60)
         rgb[occ & ~sil] = (220, 60, 60)
-        img = Image.fromarray(rgb).resize((sil.shape[1] * scale, sil.shape[0] * scale), Image.NEAREST)
+        img = Image.fromarray(rgb).resize((sil.shape[1] * scale, sil.shape[0] * scale), Image.Resampling.NEAREST)
         tiles.append(img)
         labels.append(lab)
     return _grid(tiles, labels, columns)

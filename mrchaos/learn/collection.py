@@ -177,7 +177,7 @@ def _ray_collector(
     c = cfg.collector
     threads = c.worker_threads
     if c.ray_address:
-        init = {"address": c.ray_address}
+        init: dict[str, Any] = {"address": c.ray_address}
     else:
         init = {"num_cpus": c.workers * threads, "include_dashboard": False}
     # A worker's env draws tasks from its own seed; the stage comes from publish_stage.

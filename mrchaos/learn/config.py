@@ -428,7 +428,7 @@ def _valid_keys(cls: type, prefix: str = "") -> list[str]:
     for f in dataclasses.fields(cls):
         t = hints[f.name]
         if dataclasses.is_dataclass(t) and not (cls is EnvConfig and f.name == "task"):
-            keys.extend(_valid_keys(t, f"{prefix}{f.name}."))
+            keys.extend(_valid_keys(typing.cast(type, t), f"{prefix}{f.name}."))
         elif not (cls is EnvConfig and f.name == "task"):
             keys.append(f"{prefix}{f.name}")
     return keys
@@ -501,7 +501,7 @@ def _build(cls: type, data: dict, where: str, prefix: str = "") -> Any:
             )
         t = hints[key]
         if dataclasses.is_dataclass(t):
-            kwargs[key] = _build(t, value or {}, where, f"{prefix}{key}.")
+            kwargs[key] = _build(typing.cast(type, t), value or {}, where, f"{prefix}{key}.")
         else:
             kwargs[key] = _coerce(value, t, f"{where}: {prefix}{key}")
     try:

@@ -77,7 +77,7 @@ def evaluate(
     n, nw, p = len(targets), env.batch_size[0], env.num_pieces
     if perturb_after is not None and not 0 <= perturb_after < p:
         raise ValueError(f"perturb_after must be in [0, {p - 1}], got {perturb_after}")
-    out = {k: [] for k in ("rela", "final", "iou", "strict", "cov", "sil", "view", "fail", "pert")}
+    out: dict[str, list] = {k: [] for k in ("rela", "final", "iou", "strict", "cov", "sil", "view", "fail", "pert")}
     steps: list[dict] = []
     for start in range(0, n, nw):
         chunk = targets[start : start + nw]
@@ -89,7 +89,7 @@ def evaluate(
             faces = np.concatenate([faces, np.repeat(faces[-1:], nw - m, 0)]) if m < nw else faces
         td = env.reset_to(padded, faces)
         silhouettes = td["observation"][:m, 0].numpy().copy()
-        cov = []
+        cov: list[torch.Tensor] = []
         fail = {k: torch.zeros(nw, dtype=torch.int64) for k in ROBOT_FAILURES}
         pert = {}
         for t in range(p):
@@ -120,9 +120,9 @@ def evaluate(
                     }
                 )
             td = TensorDict(observation=nxt["observation"], batch_size=env.batch_size)
-        cov = torch.stack(cov, 1)[:m]
-        out["cov"].append(cov.numpy())
-        out["rela"].append(cov.mean(1).numpy())
+        covs = torch.stack(cov, 1)[:m]
+        out["cov"].append(covs.numpy())
+        out["rela"].append(covs.mean(1).numpy())
         out["final"].append(nxt["info", "final"][:m, 0].numpy())
         out["iou"].append(nxt["info", "iou"][:m, 0].numpy())
         out["strict"].append(nxt["info", "strict_rela"][:m, 0].numpy())
@@ -168,9 +168,10 @@ def evaluate_random(policy, env_cfg: EnvConfig, n: int = 200, seed: int = 2024) 
 
 def _merge(dicts: list[dict[str, np.ndarray] | None]) -> dict[str, np.ndarray] | None:
     """Per-key concatenation; None when there is nothing, or a part has none."""
-    if not dicts or any(d is None for d in dicts):
+    given = [d for d in dicts if d is not None]
+    if not given or len(given) < len(dicts):
         return None
-    return {k: np.concatenate([d[k] for d in dicts]) for k in dicts[0]}
+    return {k: np.concatenate([d[k] for d in given]) for k in given[0]}
 
 
 def concat_results(parts: list[EpisodeResults]) -> EpisodeResults:
@@ -189,8 +190,13 @@ def concat_results(parts: list[EpisodeResults]) -> EpisodeResults:
         for k in ("rela", "final", "iou", "strict_rela", "silhouettes", "final_views")
     }
     return EpisodeResults(
+        rela=arrays["rela"],
+        final=arrays["final"],
+        iou=arrays["iou"],
+        strict_rela=arrays["strict_rela"],
         step_coverage=np.concatenate(cov),
+        silhouettes=arrays["silhouettes"],
+        final_views=arrays["final_views"],
         failures=_merge([r.failures for r in parts]),
         perturbation=_merge([r.perturbation for r in parts]),
-        **arrays,
     )

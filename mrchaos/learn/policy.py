@@ -104,8 +104,8 @@ class FactorisedCategorical(Distribution):
     def support(self):
         return constraints.integer_interval(0, max(p.logits.shape[-1] for p in self.parts) - 1)
 
-    def sample(self, sample_shape: torch.Size = torch.Size()) -> torch.Tensor:
-        return torch.stack([p.sample(sample_shape) for p in self.parts], -1)
+    def sample(self, sample_shape: torch.Size | list[int] | tuple[int, ...] = torch.Size()) -> torch.Tensor:
+        return torch.stack([p.sample(torch.Size(sample_shape)) for p in self.parts], -1)
 
     def log_prob(self, value: torch.Tensor) -> torch.Tensor:
         value = value.long()
@@ -182,7 +182,7 @@ class GridCategorical(Distribution):
         _, y, x = self.grid_shape
         return unravel_actions(flat, x, y)
 
-    def sample(self, sample_shape: torch.Size = torch.Size()) -> torch.Tensor:
+    def sample(self, sample_shape: torch.Size | list[int] | tuple[int, ...] = torch.Size()) -> torch.Tensor:
         with torch.no_grad():
             cdf = torch.softmax(self.scores, -1).cumsum(-1)
             cdf = cdf.expand(*sample_shape, *cdf.shape).contiguous()  # a no-op without sample_shape
@@ -321,8 +321,10 @@ class SpatialTrunk(nn.Module):
             )
             # Zero-initialised way back: the net starts as the one without the path and learns
             # how much context to add.
-            nn.init.zeros_(self.context["up"].weight)
-            nn.init.zeros_(self.context["up"].bias)
+            up = self.context["up"]
+            assert isinstance(up, nn.Conv2d)
+            nn.init.zeros_(up.weight)
+            nn.init.zeros_(up.bias)  # type: ignore[arg-type]  # Conv2d has a bias unless told otherwise
         self.ctx = nn.Sequential(nn.Linear(2 * c3, cfg.hidden), nn.ReLU())
         self.film = nn.Linear(cfg.hidden, 2 * c3)
         self.out_channels = c3
@@ -336,7 +338,9 @@ class SpatialTrunk(nn.Module):
         f = self.enc(x)
         if self.context is not None:
             h = F.relu(self.context["down"](f))
-            for block in self.context["blocks"]:
+            blocks = self.context["blocks"]
+            assert isinstance(blocks, nn.ModuleList)
+            for block in blocks:
                 h = F.relu(h + block(h))
             f = F.relu(f + F.interpolate(self.context["up"](h), size=f.shape[-2:], mode="nearest"))
         g = self.ctx(torch.cat([f.mean((-2, -1)), f.amax((-2, -1))], -1))
@@ -428,7 +432,7 @@ def build_actor_critic(cfg: PolicyConfig, grid: ActionGrid, view: View, action_s
         )
         value = ValueOperator(_Value(cfg.hidden), in_keys=["hidden"])
     else:
-        trunk = SpatialTrunk(cfg, size).to(memory_format=torch.channels_last)
+        trunk = SpatialTrunk(cfg, size).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
         common = TensorDictModule(trunk, in_keys=["observation"], out_keys=["features", "hidden"])
         head = TensorDictModule(
             SpatialHead(trunk.out_channels, trunk.cells, grid, view, cfg.upsample),

@@ -365,7 +365,7 @@ class Trainer:
                 self.iteration += 1
                 self.frames += data.numel()
                 seen = self.batch_metrics(data)
-                self.episodes += seen["ended"]
+                self.episodes += int(seen["ended"])
                 stage = int(self.curriculum.stage)
 
                 lr = cfg.optim.learning_rate(self.progress)

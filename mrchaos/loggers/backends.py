@@ -109,8 +109,8 @@ class RunLoggers:
         """The logger of one backend, if the run has it."""
         return self.loggers.get(backend)
 
-    def log_scalar(self, name: str, value: float, step: int) -> None:
-        """One scalar to every backend (NaNs, which some backends reject, are skipped)."""
+    def log_scalar(self, name: str, value: float | None, step: int) -> None:
+        """One scalar to every backend (None and NaNs, which some backends reject, are skipped)."""
         if value is None or (isinstance(value, float) and math.isnan(value)):
             return
         for lg in self.loggers.values():

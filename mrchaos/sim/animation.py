@@ -82,7 +82,7 @@ def write_video(frames: list[np.ndarray], path: str | Path, fps: float = 10.0) -
         import cv2
 
         h, w = frames[0].shape[:2]
-        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+        writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter.fourcc(*"mp4v"), fps, (w, h))
         if not writer.isOpened():
             raise OSError(f"{path}: OpenCV cannot write MP4 here; write a .gif instead")
         for f in frames:

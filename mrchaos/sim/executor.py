@@ -294,7 +294,7 @@ class Executor:
         others[np.arange(m), piece] = False
 
         def collided(sd: np.ndarray) -> np.ndarray:
-            return ((sd[:, :, self.contact_adr] > 0) & others[:, None]).any((1, 2))
+            return np.asarray(((sd[:, :, self.contact_adr] > 0) & others[:, None]).any((1, 2)))
 
         sd = self._run(rows, plan(approach, descend, self._hold(q_grip, cfg.seal)))
         contact |= collided(sd)

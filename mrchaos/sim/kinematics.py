@@ -141,11 +141,11 @@ def ik(
                     inside = ((q >= lower) & (q <= upper)).all(-1)
                     sols.append(q)
                     oks.append(reach_ok & ok3 & inside & np.isfinite(q).all(-1))
-    sols = np.stack(sols, -2)  # (..., 8, 6)
-    oks = np.stack(oks, -1)  # (..., 8)
-    cost = (w * (sols - ref[..., None, :]) ** 2).sum(-1)
-    cost = np.where(oks, cost, np.inf)
+    all_q = np.stack(sols, -2)  # (..., 8, 6)
+    all_ok = np.stack(oks, -1)  # (..., 8)
+    cost = (w * (all_q - ref[..., None, :]) ** 2).sum(-1)
+    cost = np.where(all_ok, cost, np.inf)
     best = cost.argmin(-1)
-    q = np.take_along_axis(sols, best[..., None, None], -2)[..., 0, :]
-    ok = oks.any(-1)
+    q = np.take_along_axis(all_q, best[..., None, None], -2)[..., 0, :]
+    ok = np.asarray(all_ok.any(-1))
     return np.where(ok[..., None], q, ref), ok

@@ -234,7 +234,7 @@ class Robot:
         x0 = np.cross(z, [0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0])
         x0 /= np.linalg.norm(x0)
         y0 = np.cross(z, x0)
-        best = (np.inf, None, None)
+        best: tuple[float, np.ndarray | None, np.ndarray | None] = (np.inf, None, None)
         for yaw in np.linspace(0, 2 * np.pi, 720, endpoint=False):
             x = math.cos(yaw) * x0 + math.sin(yaw) * y0
             base = pose_matrix(origin, np.stack([x, np.cross(z, x), z], -1))
@@ -256,15 +256,17 @@ class Robot:
                 if err < best[0]:
                     best = (err, base, tool)
             step /= 50
-        err, self.base, self.tool = best
-        if self.base is None or err > 0.01:
+        err, best_base, best_tool = best
+        if best_base is None or best_tool is None or err > 0.01:
             raise ValueError(
                 f"robot model {self.cfg.model_path()}: its kinematics are not a UR5e's "
                 f"(best calibration error {err:.3g})"
             )
-        self.exact = err < 1e-9
-        self._base_inv = np.linalg.inv(self.base)
-        self._tool_inv = np.linalg.inv(self.tool)
+        self.base: np.ndarray = best_base
+        self.tool: np.ndarray = best_tool
+        self.exact: bool = bool(err < 1e-9)
+        self._base_inv: np.ndarray = np.linalg.inv(best_base)
+        self._tool_inv: np.ndarray = np.linalg.inv(best_tool)
 
     def solve(self, pos: np.ndarray, yaw: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Joint angles (n, 6) putting the TCP at world ``pos`` (n, 3), pointing down, turned by ``yaw`` (n,).

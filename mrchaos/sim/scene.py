@@ -107,9 +107,9 @@ def build_scene_xml(piece_set: PieceSet, cfg: SceneConfig = SceneConfig(), view:
         z = p.thickness / 2
         # One convex mesh per part (MuJoCo collides convex hulls); a convex piece has one,
         # named after the piece. Mass is shared by area.
-        areas = np.array([polygon_area(q) for q in p.parts])
+        areas = np.array([polygon_area(q) for q in p.convex_parts])
         geoms = []
-        for j, (part, a) in enumerate(zip(p.parts, areas, strict=True)):
+        for j, (part, a) in enumerate(zip(p.convex_parts, areas, strict=True)):
             name = p.name if j == 0 else f"{p.name}_part{j}"
             meshes.append(f'    <mesh name="{name}" vertex="{_fmt(_prism_vertices(part, p.thickness))}"/>')
             geoms.append(

@@ -217,7 +217,7 @@ class Worlds:
         self.footprint[rows] = fp
 
     # ----------------------------------------------------------------- actions
-    def reset(self, rows: np.ndarray, preassembled: list[np.ndarray] | None = None) -> None:
+    def reset(self, rows: np.ndarray, preassembled: list[tuple[np.ndarray, ...]] | None = None) -> None:
         """Return the worlds of ``rows`` to the home keyframe, then put pieces already assembled.
 
         ``preassembled[k]`` is ``(rows_k, poses_k)`` or ``(rows_k, poses_k, mirrored_k)``: the
@@ -337,6 +337,7 @@ class Worlds:
         deep = under & (depth > self.cfg.push_depth)
         floor = np.where(deep, self.top[rows], 0.0).max(1)
         travel = np.where(self.placed[rows], self.top[rows], 0.0).max(1)
+        assert self.executor is not None  # robot placement builds it
         flip = None
         f = np.flatnonzero(mirrored) if mirrored is not None else np.zeros(0, dtype=np.int64)
         if len(f):
@@ -355,6 +356,7 @@ class Worlds:
         if flip is not None:
             for k in ("unreachable", "missed", "dropped", "collision"):
                 getattr(res, k)[f] |= getattr(flip, k)
+            assert res.flip_failed is not None  # ExecutionResult fills it
             res.flip_failed[f] = flip.flip_failed
         self.placed[rows, piece] = True
         self._refresh(rows)

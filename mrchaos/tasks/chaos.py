@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import io
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -183,7 +184,7 @@ def _object_parts(piece_set: PieceSet, n: int, mirrored: np.ndarray | None) -> n
 def _clear(poly: np.ndarray, others: np.ndarray) -> np.ndarray:
     """(m,) True where parts ``poly`` (m, K, V, 2) overlap none of ``others`` (m, j, K, V, 2)."""
     depth = convex_penetration(poly[:, None, :, None], others[:, :, None])  # (m, j, K, K)
-    return (depth <= 0).all((1, 2, 3))
+    return np.asarray((depth <= 0).all((1, 2, 3)))
 
 
 def generate(
@@ -201,7 +202,8 @@ def generate(
     if cfg.mirror_prob > 0:  # no draw otherwise, so that objects without mirroring stay as they were
         mirrored = (rng.random((n, len(piece_set))) < cfg.mirror_prob) & piece_set.chiral
     poses = np.zeros((n, len(piece_set), 3))
-    for m, fn in enumerate((scatter, attract)):
+    generators: tuple[Callable[..., np.ndarray], ...] = (scatter, attract)
+    for m, fn in enumerate(generators):
         idx = np.flatnonzero(modes == m)
         if len(idx):
             poses[idx] = fn(piece_set, len(idx), rng, cfg, view, mirrored=mirrored[idx])

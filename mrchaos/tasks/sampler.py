@@ -192,9 +192,11 @@ class TargetSampler:
             poses[idx], _, mirrored[idx] = generate(self.piece_set, len(idx), rng, self.cfg.chaos, self.view)
         idx = np.flatnonzero(source == 1)
         if len(idx):
+            assert self.cache is not None  # built whenever the mix draws from it
             poses[idx], mirrored[idx] = self.cache.sample(len(idx), rng)
         idx = np.flatnonzero(source == 2)
         if len(idx):
+            assert self._figure_poses is not None and self._figure_mirrored is not None  # the mix has figures
             figure[idx] = rng.integers(0, len(self.figures), len(idx))
             poses[idx] = self._figure_poses[figure[idx]]
             mirrored[idx] = self._figure_mirrored[figure[idx]]
