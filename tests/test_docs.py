@@ -35,3 +35,31 @@ def test_readme_is_short_and_links_into_the_docs():
     for page in ("getting-started", "concepts", "training", "benchmark", "performance", "extending"):
         assert f"docs/{page}.md" in text, page
         assert (ROOT / "docs" / f"{page}.md").exists(), page
+
+
+def test_every_result_table_is_regenerated_by_the_script_with_its_command():
+    import re
+    import shlex
+
+    sys.path.insert(0, str(ROOT / "tools"))
+    try:
+        import regenerate_results as regen
+    finally:
+        sys.path.pop(0)
+    results = ROOT / "docs" / "results"
+    tables = sorted(p.name for p in results.iterdir() if p.is_dir()) if results.exists() else []
+    assert tables, "no result tables under docs/results"
+    for name in tables:
+        assert name in regen.TABLES, f"docs/results/{name} is not made by tools/regenerate_results.py"
+        recorded = shlex.split((results / name / "command.txt").read_text())
+        figures_dir = next((a.rsplit("/", 1)[0] for a in recorded if a.endswith(".json")), "../shared/figures")
+        assert recorded == regen.command(name, figures_dir), name
+        for f in ("results.json", "results.md"):
+            assert (results / name / f).stat().st_size > 0, (name, f)
+    # The pages include the files (pymdownx.snippets), and only files that exist.
+    included = set()
+    for page in (ROOT / "docs").glob("*.md"):
+        for path in re.findall(r'--8<-- "([^"]+)"', page.read_text()):
+            assert (ROOT / path).exists(), (page.name, path)
+            included.add(Path(path).parent.name)
+    assert set(tables) <= included, f"tables no page shows: {set(tables) - included}"

@@ -1,0 +1,95 @@
+"""Re-run every benchmark behind a published result table and rewrite its files.
+
+Each table the documentation shows lives in ``docs/results/<name>/``: ``results.json`` and
+``results.md`` as ``mrchaos-bench`` wrote them, and ``command.txt``, the exact command. The pages
+include ``results.md`` (``pymdownx.snippets``), so a reshipped policy updates its tables by one
+command:
+
+    python tools/regenerate_results.py                 # every table
+    python tools/regenerate_results.py table1 builtin  # some of them
+    python tools/regenerate_results.py --list
+
+Tables on the paper's figures need ``--figures-dir`` (default ``../shared/figures``). Figure ids of
+that set are not committed: the skipped figures are kept as a count.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "docs" / "results"
+
+#: The Table I policies of the tangram, in the order the README lists them.
+TANGRAM_POLICIES = [
+    "mrchaos-dense-ppo", "mrchaos-dense", "mrchaos-bc-chaos", "mrchaos", "mrchaos-wo-local",
+    "mrchaos-wo-global", "bc", "mrchaos-paper", "random", "oracle",
+]  # fmt: skip
+
+#: Every published table: its name and the ``mrchaos-bench`` arguments that make it.
+#: ``{figures}`` stands for ``--figures-dir``.
+TABLES: dict[str, list[str]] = {
+    # README and docs/benchmark.md: Table I on the paper's 104 figures and 200 Random objects.
+    "table1": ["--families", "all", "--figures", "{figures}/mrchaos104.json"]
+    + [a for p in TANGRAM_POLICIES for a in ("--policy", p)],
+    # docs/getting-started.md: the main job, on the built-in library (no external data).
+    "builtin": ["--families", "all", "--policy", "mrchaos-dense-ppo", "--policy", "mrchaos", "--policy", "oracle"],
+}
+
+
+def command(name: str, figures_dir: str) -> list[str]:
+    """The command line of table ``name``."""
+    return ["mrchaos-bench", *(a.replace("{figures}", figures_dir) for a in TABLES[name])]
+
+
+def _scrub(out: Path) -> None:
+    """Keep the skipped figures as a count: their ids name figures of a data set not committed here."""
+    data = json.loads((out / "results.json").read_text())
+    data["skipped"] = len(data.get("skipped") or [])
+    data.pop("sources", None)
+    (out / "results.json").write_text(json.dumps(data, indent=1) + "\n")
+    # The pages include the file under their own heading: no title, no figure ids.
+    md = [ln for ln in (out / "results.md").read_text().splitlines() if not ln.startswith(("- ", "# "))]
+    (out / "results.md").write_text("\n".join(md).rstrip("\n") + "\n")
+
+
+def regenerate(name: str, figures_dir: str) -> None:
+    """Run table ``name``'s command and write its files into ``docs/results/<name>/``."""
+    cmd = command(name, figures_dir)
+    with tempfile.TemporaryDirectory() as tmp:
+        subprocess.run([*cmd, "--out", tmp], check=True)
+        out = RESULTS / name
+        out.mkdir(parents=True, exist_ok=True)
+        for f in ("results.json", "results.md"):
+            (out / f).write_bytes((Path(tmp) / f).read_bytes())
+    _scrub(out)
+    (out / "command.txt").write_text(shlex.join(cmd) + "\n")
+    print(f"wrote {out}")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("tables", nargs="*", help=f"tables to regenerate (default: all of {', '.join(TABLES)})")
+    ap.add_argument("--figures-dir", default="../shared/figures", help="where the paper's figure files lie")
+    ap.add_argument("--list", action="store_true", help="print each table's command and stop")
+    args = ap.parse_args()
+    unknown = [t for t in args.tables if t not in TABLES]
+    if unknown:
+        print(f"regenerate_results: unknown table(s) {unknown}; tables: {', '.join(TABLES)}", file=sys.stderr)
+        return 2
+    for name in args.tables or list(TABLES):
+        if args.list:
+            print(f"{name}: {shlex.join(command(name, args.figures_dir))}")
+        else:
+            regenerate(name, args.figures_dir)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
