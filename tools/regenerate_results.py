@@ -28,7 +28,7 @@ RESULTS = ROOT / "docs" / "results"
 
 #: The Table I policies of the tangram, in the order the README lists them.
 TANGRAM_POLICIES = [
-    "mrchaos-dense-ppo", "mrchaos-dense", "mrchaos-bc-chaos", "mrchaos", "mrchaos-wo-local",
+    "mrchaos-exit", "mrchaos-dense-ppo", "mrchaos-dense", "mrchaos-bc-chaos", "mrchaos", "mrchaos-wo-local",
     "mrchaos-wo-global", "bc", "mrchaos-paper", "random", "oracle",
 ]  # fmt: skip
 

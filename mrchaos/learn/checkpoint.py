@@ -45,6 +45,7 @@ SHIPPED = {
     "mrchaos-bc-chaos": ("mrchaos-bc-chaos.pt", "BC on chaos objects (conf/bc_chaos.yaml)"),
     "mrchaos-dense": ("mrchaos-dense.pt", "dense counterfactual supervision on chaos (conf/dense.yaml)"),
     "mrchaos-dense-ppo": ("mrchaos-dense-ppo.pt", "PPO on top of mrchaos-dense (conf/dense_ppo.yaml)"),
+    "mrchaos-exit": ("mrchaos-exit.pt", "expert iteration on top of mrchaos-dense (conf/exit.yaml)"),
     "mrchaos-flip": ("mrchaos-flip.pt", "MRChaos with the flip for chiral pieces (conf/flip.yaml)"),
     "mrchaos-cutlery": ("mrchaos-cutlery.pt", "MRChaos on cutlery (conf/cutlery.yaml)"),
     "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),
