@@ -43,7 +43,7 @@ from mrchaos.learn.bc import SHARD_KEYS, ranking_loss, supervised_loss
 from mrchaos.learn.checkpoint import checkpoint_path, load_checkpoint
 from mrchaos.learn.config import config_from_dict, load_config
 from mrchaos.learn.evaluate import evaluate
-from mrchaos.learn.policy import build_actor_critic
+from mrchaos.learn.policy import build_actor_critic, unravel_actions
 from mrchaos.tasks.chaos import generate
 
 
@@ -122,12 +122,6 @@ class AfterstateRanker(nn.Module):
         return self.head(self.conv(x)).reshape(b, k) + self.prior * prior
 
 
-def scores_at(dist, candidates: torch.Tensor) -> torch.Tensor:
-    t, y, x = dist.grid_shape
-    flat = candidates[..., 2] * (x * y) + candidates[..., 1] * x + candidates[..., 0]
-    return dist.mode_scores.gather(-1, flat)
-
-
 def judge(scores: torch.Tensor, iou: torch.Tensor) -> tuple[float, float]:
     """Agreement (the top-scored candidate reaches the best IoU: ties with the planner's choice
     count) and mean regret."""
@@ -180,7 +174,7 @@ def main() -> None:
     def policy_scores(obs: torch.Tensor, cand: torch.Tensor, grad: bool = False):
         with torch.set_grad_enabled(grad):
             dist = policy.get_dist(TensorDict(observation=obs, batch_size=[len(obs)]))
-            return dist, scores_at(dist, cand)
+            return dist, dist.scores_at(cand)
 
     def all_scores(data: dict, model=None) -> torch.Tensor:
         out = []
@@ -248,9 +242,9 @@ def main() -> None:
                     return dist.mode
                 top = dist.top_modes(k)
                 _, y, x = dist.grid_shape
-                cand = torch.stack([top % x, (top // x) % y, top // (x * y)], -1)
+                cand = unravel_actions(top, x, y)
                 step = torch.as_tensor(e.next_piece)
-                s = ranker(td["observation"], candidate_masks(e, cand, step), scores_at(dist, cand))
+                s = ranker(td["observation"], candidate_masks(e, cand, step), dist.scores_at(cand))
                 return cand[torch.arange(len(cand)), s.argmax(1)]
 
         res = evaluate(ev, targets, act, mirrored=mirrored)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
 import sys
 from pathlib import Path
 
@@ -95,11 +96,14 @@ def plot_rounds(run_dirs: list[Path], out: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
+    ticks: set[int] = set()
     for run in run_dirs:
-        rows = [r for r in read_metrics(run) if r.get("planner_rela", float("nan")) == r.get("planner_rela")]
+        # A round's planner figures stand on its first epoch's row only.
+        rows = [r for r in read_metrics(run) if not math.isnan(r.get("planner_rela", math.nan))]
         if not rows:
             raise ValueError(f"{run}: metrics.csv has no expert-iteration round (no planner_rela)")
         rounds = [int(r["round"]) for r in rows]
+        ticks.update(rounds)
         (line,) = ax.plot(rounds, [r["greedy_rela"] for r in rows], "o-", label=f"{_label(run)}: policy (greedy)")
         ax.plot(
             rounds,
@@ -108,7 +112,7 @@ def plot_rounds(run_dirs: list[Path], out: Path) -> None:
             color=line.get_color(),
             label=f"{_label(run)}: planner around it",
         )
-    ax.set_xticks(sorted({int(r["round"]) for run in run_dirs for r in read_metrics(run) if r["round"] > 0}))
+    ax.set_xticks(sorted(ticks))
     ax.set_xlabel("expert-iteration round (the policy of the round before)")
     ax.set_ylabel("Rela on the round's chaos objects")
     ax.grid(alpha=0.3)

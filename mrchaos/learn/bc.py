@@ -162,9 +162,7 @@ def ranking_loss(
     """Per-sample listwise loss: the cross-entropy between softmax(IoU / T) over a state's planner
     candidates (B, k, 3) and the softmax of the policy's mode scores at the same candidates, the
     scores whose argmax is the deterministic action (windowed under a mode window)."""
-    t, y, x = dist.grid_shape
-    flat = candidates[..., 2] * (x * y) + candidates[..., 1] * x + candidates[..., 0]
-    scores = dist.mode_scores.gather(-1, flat)
+    scores = dist.scores_at(candidates)
     target = torch.softmax(iou / temperature, -1)
     return -(target * torch.log_softmax(scores, -1)).sum(-1)
 
@@ -401,7 +399,9 @@ class SupervisedRun:
             iou = data["iou"][idx].to(self.device)
             with autocast(cfg.precision, self.device):
                 dist = self.policy.get_dist(TensorDict(observation=obs, batch_size=[len(idx)]))
-                sup = supervised_loss(dist, data["label"][idx].to(self.device), self.dense, bc.temperature).mean()
+                # With weight 0 the supervised loss is only logged: no backward pass through it.
+                with torch.set_grad_enabled(sup_weight > 0 and torch.is_grad_enabled()):
+                    sup = supervised_loss(dist, data["label"][idx].to(self.device), self.dense, bc.temperature).mean()
                 has = ~iou[:, 0].isnan()
                 rank = torch.zeros((), device=self.device)
                 if has.any():

@@ -20,7 +20,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from mrchaos.env.tangram import ROBOT_FAILURES, EnvConfig, TangramEnv
 from mrchaos.tasks.chaos import generate
 
-__all__ = ["EpisodeResults", "evaluate", "evaluate_random", "concat_results", "policy_actor"]
+__all__ = ["EpisodeResults", "evaluate", "evaluate_random", "concat_results", "policy_actor", "policy_device"]
 
 
 @dataclass
@@ -42,11 +42,16 @@ class EpisodeResults:
 Actor = Callable[[TangramEnv, TensorDict], torch.Tensor]
 
 
+def policy_device(policy) -> torch.device:
+    """The device a policy module's weights lie on (the CPU for one without weights)."""
+    weights = next(iter(policy.parameters()), None) if isinstance(policy, torch.nn.Module) else None
+    return weights.device if weights is not None else torch.device("cpu")
+
+
 def policy_actor(policy) -> Actor:
     """Greedy actions of a TorchRL policy module, on the device its weights lie on (the env's
     observations go there and the actions come back to the env's device)."""
-    weights = next(iter(policy.parameters()), None) if isinstance(policy, torch.nn.Module) else None
-    device = weights.device if weights is not None else torch.device("cpu")
+    device = policy_device(policy)
 
     def act(env: TangramEnv, td: TensorDict) -> torch.Tensor:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):

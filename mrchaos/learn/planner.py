@@ -25,7 +25,7 @@ import torch
 from tensordict import TensorDict
 
 from mrchaos.env.tangram import TangramEnv
-from mrchaos.learn.evaluate import Actor
+from mrchaos.learn.evaluate import Actor, policy_device
 from mrchaos.learn.policy import GridCategorical, unravel_actions
 
 __all__ = ["Lookahead", "PlannerLabels"]
@@ -67,10 +67,8 @@ class Lookahead:
         self.policy, self.k = policy, k
 
     def _dist(self, td: TensorDict) -> GridCategorical:
-        weights = next(iter(self.policy.parameters()), None)
-        device = weights.device if weights is not None else torch.device("cpu")
         with torch.no_grad():
-            dist = self.policy.get_dist(td.select("observation").clone().to(device))
+            dist = self.policy.get_dist(td.select("observation").clone().to(policy_device(self.policy)))
         if not isinstance(dist, GridCategorical):
             raise ValueError("lookahead needs a spatial policy (one score per grid action)")
         return dist
@@ -141,7 +139,7 @@ class Lookahead:
                     td = TensorDict(observation=nxt["observation"], batch_size=env.batch_size)
                 iou = nxt["info", "iou"][: m * k, 0].reshape(m, k).cpu()
                 best = iou.argmax(1)  # the first of equal IoUs: the policy's order
-                picks = torch.arange(m) * k + best
+                picks = first + best
                 chosen[start : start + m, t] = tried[picks].numpy()
                 if record:
                     rec["iou"].append(iou.float())

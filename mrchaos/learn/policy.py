@@ -33,6 +33,7 @@ __all__ = [
     "compile_networks",
     "count_parameters",
     "unravel_actions",
+    "ravel_actions",
     "POLICIES",
 ]
 
@@ -146,6 +147,13 @@ def unravel_actions(flat: torch.Tensor, nx: int, ny: int) -> torch.Tensor:
     return torch.stack([flat % nx, (flat // nx) % ny, flat // (nx * ny)], -1)
 
 
+def ravel_actions(actions: torch.Tensor, nx: int, ny: int) -> torch.Tensor:
+    """Indices into the flattened (theta, y, x) grid of (..., 3) grid actions (x, y, theta): the
+    inverse of :func:`unravel_actions`."""
+    actions = actions.long()
+    return actions[..., 2] * (nx * ny) + actions[..., 1] * nx + actions[..., 0]
+
+
 class GridCategorical(Distribution):
     """One categorical over the flattened (theta, y, x) grid; samples are (..., 3) indices (x, y, theta).
 
@@ -192,9 +200,8 @@ class GridCategorical(Distribution):
             return self._unravel(flat)
 
     def log_prob(self, value: torch.Tensor) -> torch.Tensor:
-        t, y, x = self.grid_shape
-        value = value.long()
-        flat = value[..., 2] * (x * y) + value[..., 1] * x + value[..., 0]
+        _, y, x = self.grid_shape
+        flat = ravel_actions(value, x, y)
         if not torch.is_grad_enabled():
             lse = torch.logsumexp(self.scores, -1)
             return torch.gather(self.scores, -1, flat.unsqueeze(-1)).squeeze(-1) - lse
@@ -219,6 +226,12 @@ class GridCategorical(Distribution):
         # Zero padding: the window's sum at the grid's edge counts only actions that exist.
         mass = F.avg_pool2d(p, self.window, stride=1, padding=self.window // 2)
         return mass.clamp_min(1e-30).log().reshape(self.scores.shape)
+
+    def scores_at(self, actions: torch.Tensor) -> torch.Tensor:
+        """(..., k) :attr:`mode_scores` of the grid actions ``actions`` (..., k, 3): how the policy
+        ranks them (a planner's candidates, say)."""
+        _, y, x = self.grid_shape
+        return self.mode_scores.gather(-1, ravel_actions(actions, x, y))
 
     def top_modes(self, k: int) -> torch.Tensor:
         """(..., k) flat indices of the ``k`` best actions in the policy's order, the mode first.
