@@ -83,6 +83,25 @@ def collection_throughput(kind: str, workers: int, threads: int, batches: int, o
                 ray.shutdown()
 
 
+def learning_throughput(variant: str, iterations: int, overrides: list[str]) -> dict[str, float]:
+    """End-to-end PPO throughput of one policy variant: world-steps per second and the mean
+    collection and update seconds of a 4096-frame iteration, after one warm-up iteration."""
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = _config(tmp, [*VARIANTS[variant], f"collector.total_frames={4096 * (iterations + 1)}", *overrides])
+        trainer = Trainer(cfg, Path(tmp) / "bench")
+        trainer.run()
+        with open(Path(tmp) / "bench" / "metrics.csv") as f:
+            rows = list(csv.DictReader(f))[1:]  # drop the warm-up iteration
+        c = sum(float(r["collect_s"]) for r in rows)
+        u = sum(float(r["update_s"]) for r in rows)
+        return {
+            "params": count_parameters(trainer.actor_critic),
+            "steps_per_s": 4096 * len(rows) / (c + u),
+            "collect_s": c / len(rows),
+            "update_s": u / len(rows),
+        }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--iterations", type=int, default=4, help="measured iterations (after one warm-up)")
@@ -101,30 +120,10 @@ def main() -> None:
     ap.add_argument("overrides", nargs="*")
     args = ap.parse_args()
     print(f"{'policy':>14} {'params':>9} {'steps/s':>8} {'collect':>8} {'update':>8}   (per 4096-frame iteration)")
+    threads = [f"threads={args.threads}", f"env.physics.nthread={args.threads}"]
     for name in args.variants:
-        with tempfile.TemporaryDirectory() as tmp:
-            frames = 4096 * (args.iterations + 1)
-            cfg = _config(
-                tmp,
-                VARIANTS[name]
-                + [
-                    f"threads={args.threads}",
-                    f"env.physics.nthread={args.threads}",
-                    f"collector.total_frames={frames}",
-                    *args.overrides,
-                ],
-            )
-            trainer = Trainer(cfg, Path(tmp) / "bench")
-            trainer.run()
-            with open(Path(tmp) / "bench" / "metrics.csv") as f:
-                rows = list(csv.DictReader(f))[1:]  # drop the warm-up iteration
-            c = sum(float(r["collect_s"]) for r in rows)
-            u = sum(float(r["update_s"]) for r in rows)
-            n = sum(4096 for _ in rows)
-            print(
-                f"{name:>14} {count_parameters(trainer.actor_critic):>9,} {n / (c + u):>8.0f} "
-                f"{c / len(rows):>7.2f}s {u / len(rows):>7.2f}s"
-            )
+        r = learning_throughput(name, args.iterations, [*threads, *args.overrides])
+        print(f"{name:>14} {r['params']:>9,} {r['steps_per_s']:>8.0f} {r['collect_s']:>7.2f}s {r['update_s']:>7.2f}s")
     if args.collectors:
         print(f"\ncollection alone, spatial policy, {args.iterations} batches of 4096 world-steps:")
         print(f"{'collector':>14} {'workers':>8} {'steps/s':>8}")

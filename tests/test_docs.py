@@ -51,9 +51,11 @@ def test_every_result_table_is_regenerated_by_the_script_with_its_command():
     assert tables, "no result tables under docs/results"
     for name in tables:
         assert name in regen.TABLES, f"docs/results/{name} is not made by tools/regenerate_results.py"
-        recorded = shlex.split((results / name / "command.txt").read_text())
-        figures_dir = next((a.rsplit("/", 1)[0] for a in recorded if a.endswith(".json")), "../shared/figures")
-        assert recorded == regen.command(name, figures_dir), name
+        recorded = [shlex.split(ln) for ln in (results / name / "command.txt").read_text().splitlines()]
+        args = [a for c in recorded for a in c]
+        figures_dir = next((a.rsplit("/", 1)[0] for a in args if a.endswith(".json")), "../shared/figures")
+        assert recorded == regen.commands(name, figures_dir), name
+        assert recorded[-1][0] == "mrchaos-bench", name
         for f in ("results.json", "results.md"):
             assert (results / name / f).stat().st_size > 0, (name, f)
     # The pages include the files (pymdownx.snippets), and only files that exist.
@@ -63,3 +65,28 @@ def test_every_result_table_is_regenerated_by_the_script_with_its_command():
             assert (ROOT / path).exists(), (page.name, path)
             included.add(Path(path).parent.name)
     assert set(tables) <= included, f"tables no page shows: {set(tables) - included}"
+
+
+def test_the_readme_table_i_is_the_committed_result_file():
+    """The README cannot include a file, so its Table I is checked against the one the site includes."""
+    import json
+    import re
+
+    data = json.loads((ROOT / "docs" / "results" / "table1" / "results.json").read_text())["policies"]
+    families = ("Random", "H-Normal", "H-Hard", "H-Fiendish")
+    checked = set()
+    for line in (ROOT / "README.md").read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) != 6 or not line.startswith("| "):
+            continue
+        named = re.match(r"\**`([\w-]+)`", cells[0])
+        key = named.group(1) if named else cells[0].split(" ")[0]
+        if key not in data:
+            continue
+        for fam, cell in zip(families, cells[2:], strict=True):
+            shown = [float(x) for x in re.findall(r"\d+\.\d", cell)]
+            m = data[key]["families"][fam]
+            want = [round(100 * m["rela"]["mean"], 1), round(100 * m["final"]["mean"], 1)]
+            assert shown == want, f"README Table I, {key} on {fam}: {shown} against results.json's {want}"
+        checked.add(key)
+    assert checked == set(data), f"README Table I lacks {set(data) - checked}"

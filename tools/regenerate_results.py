@@ -1,9 +1,9 @@
 """Re-run every benchmark behind a published result table and rewrite its files.
 
 Each table the documentation shows lives in ``docs/results/<name>/``: ``results.json`` and
-``results.md`` as ``mrchaos-bench`` wrote them, and ``command.txt``, the exact command. The pages
-include ``results.md`` (``pymdownx.snippets``), so a reshipped policy updates its tables by one
-command:
+``results.md`` as ``mrchaos-bench`` wrote them, and ``command.txt``, the exact commands (any figure
+set the bench needs made, then the bench). The pages include ``results.md`` (``pymdownx.snippets``),
+so a reshipped policy updates its tables by one command:
 
     python tools/regenerate_results.py                 # every table
     python tools/regenerate_results.py table1 builtin  # some of them
@@ -32,20 +32,42 @@ TANGRAM_POLICIES = [
     "mrchaos-wo-global", "bc", "mrchaos-paper", "random", "oracle",
 ]  # fmt: skip
 
+#: Where the mirrored figure set is written (``tools/mirror_figures.py``): under ``runs/``, which is
+#: not committed, since it is made from data that is not.
+MIRRORED = "runs/results/mrchaos104_mirrored.json"
+
 #: Every published table: its name and the ``mrchaos-bench`` arguments that make it.
-#: ``{figures}`` stands for ``--figures-dir``.
+#: ``{figures}`` stands for ``--figures-dir``; ``{mirrored}`` for the paper's figures reflected in x,
+#: which the script makes first (the command is recorded beside the bench's).
 TABLES: dict[str, list[str]] = {
     # README and docs/benchmark.md: Table I on the paper's 104 figures and 200 Random objects.
     "table1": ["--families", "all", "--figures", "{figures}/mrchaos104.json"]
     + [a for p in TANGRAM_POLICIES for a in ("--policy", p)],
     # docs/getting-started.md: the main job, on the built-in library (no external data).
     "builtin": ["--families", "all", "--policy", "mrchaos-dense-ppo", "--policy", "mrchaos", "--policy", "oracle"],
-}
+    # docs/training.md: the lookahead planner around the shipped policies (not the paper's protocol).
+    "lookahead3": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--lookahead", "3"]
+    + [a for p in ("mrchaos-exit", "mrchaos-dense-ppo", "mrchaos-dense", "mrchaos-bc-chaos", "mrchaos")
+       for a in ("--policy", p)],
+    "lookahead10": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--lookahead", "10"]
+    + [a for p in ("mrchaos-exit", "mrchaos-dense-ppo", "mrchaos-wo-global") for a in ("--policy", p)],
+    # docs/robot-and-flip.md: the flip policy beside one that cannot flip, on the figures as
+    # published and reflected in x (every one of them then needs the parallelogram turned over).
+    "flip": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--policy", "mrchaos-flip",
+             "--policy", "mrchaos"],
+    "flip_mirrored": ["--families", "all", "--figures", "{mirrored}", "--flip", "--policy", "mrchaos-flip",
+                      "--policy", "mrchaos"],
+}  # fmt: skip
 
 
-def command(name: str, figures_dir: str) -> list[str]:
-    """The command line of table ``name``."""
-    return ["mrchaos-bench", *(a.replace("{figures}", figures_dir) for a in TABLES[name])]
+def commands(name: str, figures_dir: str) -> list[list[str]]:
+    """The command lines of table ``name``: any figure set it needs made, then its bench."""
+    args = TABLES[name]
+    made = []
+    if "{mirrored}" in args:
+        made.append(["python", "tools/mirror_figures.py", f"{figures_dir}/mrchaos104.json", MIRRORED])
+    bench = ["mrchaos-bench", *(a.replace("{figures}", figures_dir).replace("{mirrored}", MIRRORED) for a in args)]
+    return [*made, bench]
 
 
 def _scrub(out: Path) -> None:
@@ -60,16 +82,19 @@ def _scrub(out: Path) -> None:
 
 
 def regenerate(name: str, figures_dir: str) -> None:
-    """Run table ``name``'s command and write its files into ``docs/results/<name>/``."""
-    cmd = command(name, figures_dir)
+    """Run table ``name``'s commands and write its files into ``docs/results/<name>/``."""
+    *made, bench = commands(name, figures_dir)
+    (ROOT / MIRRORED).parent.mkdir(parents=True, exist_ok=True)
+    for cmd in made:
+        subprocess.run([sys.executable, *cmd[1:]] if cmd[0] == "python" else cmd, check=True, cwd=ROOT)
     with tempfile.TemporaryDirectory() as tmp:
-        subprocess.run([*cmd, "--out", tmp], check=True)
+        subprocess.run([*bench, "--out", tmp], check=True, cwd=ROOT)
         out = RESULTS / name
         out.mkdir(parents=True, exist_ok=True)
         for f in ("results.json", "results.md"):
             (out / f).write_bytes((Path(tmp) / f).read_bytes())
     _scrub(out)
-    (out / "command.txt").write_text(shlex.join(cmd) + "\n")
+    (out / "command.txt").write_text("".join(shlex.join(c) + "\n" for c in (*made, bench)))
     print(f"wrote {out}")
 
 
@@ -85,7 +110,7 @@ def main() -> int:
         return 2
     for name in args.tables or list(TABLES):
         if args.list:
-            print(f"{name}: {shlex.join(command(name, args.figures_dir))}")
+            print(f"{name}: " + " && ".join(shlex.join(c) for c in commands(name, args.figures_dir)))
         else:
             regenerate(name, args.figures_dir)
     return 0

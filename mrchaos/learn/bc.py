@@ -345,6 +345,7 @@ class SupervisedRun:
             "frames": sum(len(s["observation"]) for s in self.shards),
             "episodes": self.episodes,
             "minutes": self.minutes,
+            # No CUDA generator state: an epoch draws its permutation on the CPU and nothing on the device.
             "rng": {"torch": torch.get_rng_state(), "numpy": self.rng.bit_generator.state},
             "supervision": {"round": self.round, "epoch": self.epoch, "rows": self.rows},
         }
