@@ -368,3 +368,20 @@ def test_shipped_flip_policy_builds_the_mirrored_library_as_well_as_the_library(
 
     assert sum(drawn["counts"].values()) == sum(mirrored["counts"].values())
     assert abs(final(mirrored) - final(drawn)) < 0.03 and final(mirrored) > 0.75, (final(mirrored), final(drawn))
+
+
+def test_the_bench_turns_random_objects_over_only_with_the_flip():
+    from mrchaos.bench.benchmark import Bench, BenchError
+
+    with pytest.raises(BenchError, match="needs --flip"):
+        Bench(None, ["Random"], 8, 0, random_mirror=0.5)
+    with pytest.raises(BenchError, match=r"probability in \[0, 1\]"):
+        Bench(None, ["Random"], 8, 0, flip=True, random_mirror=1.5)
+    plain = Bench(None, ["Random"], 64, 0, flip=True)
+    turned = Bench(None, ["Random"], 64, 0, flip=True, random_mirror=0.5)
+    ((_, _, face_up, _),) = plain.targets["Random"]
+    ((_, _, mirrored, _),) = turned.targets["Random"]
+    assert not face_up.any()
+    chiral = turned.piece_set.chiral
+    assert not mirrored[:, ~chiral].any()
+    assert 0.3 < mirrored[:, chiral].mean() < 0.7  # half of the parallelograms, give or take 64 draws

@@ -129,6 +129,7 @@ class Bench:
         families: families to run.
         random_objects: Random objects (seeded; the same set every run).
         seed: seed of the Random objects.
+        random_mirror: the chance that a Random object's chiral piece lies turned over (needs ``flip``).
         placement: "teleport" or "robot" (the UR5e picks and places every piece).
         num_worlds: worlds evaluated at once.
         robot_model: UR5e MJCF for robot placement ("" for the package's own).
@@ -163,6 +164,7 @@ class Bench:
         flip: bool = False,
         lookahead: int = 1,
         mode_window: int | None = None,
+        random_mirror: float = 0.0,
     ) -> None:
         if placement not in ("teleport", "robot"):
             raise BenchError(f"placement must be 'teleport' or 'robot', got {placement!r}")
@@ -196,6 +198,15 @@ class Bench:
         if perturb_after is not None and not 0 <= perturb_after < len(self.piece_set):
             raise BenchError(f"--perturb must be a step in [0, {len(self.piece_set) - 1}], got {perturb_after}")
         self.env_config = config_from_dict({"task": {"preset": task}}, f"task {task}").env_config()
+        if not 0.0 <= random_mirror <= 1.0:
+            raise BenchError(f"--random-mirror must be a probability in [0, 1], got {random_mirror}")
+        if random_mirror and not flip:
+            raise BenchError("--random-mirror turns Random objects' chiral pieces over: it needs --flip")
+        self.random_mirror = random_mirror
+        if random_mirror:
+            chaos = dataclasses.replace(self.env_config.task.chaos, mirror_prob=random_mirror)
+            task_cfg = dataclasses.replace(self.env_config.task, chaos=chaos)
+            self.env_config = dataclasses.replace(self.env_config, task=task_cfg)
         kinds = {ps.kind for ps in map(get_piece_set, self.preset.random_sets)}
         if figure_sets is None:
             goals = self.preset.goal_figures(self.env_config.view)
@@ -344,6 +355,7 @@ class Bench:
         results["piece_names"] = list(self.piece_set.names)
         results["placement"] = self.placement
         results["flip"] = self.flip
+        results["random_mirror"] = self.random_mirror
         results["lookahead"] = self.lookahead
         results["mode_window"] = self.mode_window
         results["needs_flip"] = {fam: self.needs_flip.get(fam, 0) for fam in results["counts"]}

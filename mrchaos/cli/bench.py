@@ -77,6 +77,14 @@ def _parser() -> argparse.ArgumentParser:
         "own grid. "
         "Implied when a policy was trained with the flip",
     )
+    ap.add_argument(
+        "--random-mirror",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="turn each Random object's chiral pieces over with probability P (with --flip), "
+        "as a flip policy's training objects are",
+    )
     ap.add_argument("--out", type=Path, default=Path("runs/bench"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--worlds", type=int, default=64, help="worlds evaluated at once")
@@ -149,6 +157,7 @@ def _bench(args: argparse.Namespace) -> int:
         flip=flip,
         lookahead=args.lookahead,
         mode_window=args.mode_window,
+        random_mirror=args.random_mirror,
     )
     for fid, why in bench.skipped:
         print(f"skipped {fid}: {why}", file=sys.stderr)

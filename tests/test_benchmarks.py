@@ -1,0 +1,72 @@
+"""The benchmark scripts' orchestration (their figures are measured by running them, not here)."""
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def workstation(monkeypatch):
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import workstation
+
+    calls = []
+
+    def fake(variant, iterations, overrides):
+        calls.append((variant, overrides))
+        return {"params": 1, "steps_per_s": 100.0 + len(calls), "collect_s": 1.0, "update_s": 2.0}
+
+    monkeypatch.setattr(workstation, "learning_throughput", fake)
+    yield workstation, calls
+    sys.modules.pop("workstation", None)
+
+
+def test_the_workstation_check_runs_the_cpu_parts_and_says_what_it_skipped(workstation, tmp_path, capsys, monkeypatch):
+    ws, calls = workstation
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(ws.os, "cpu_count", lambda: 2)
+    assert ws.main(["--out", str(tmp_path), "--iterations", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "skipped (no CUDA device): cuda tests, smoke on cuda" in out
+    report = json.loads((tmp_path / "workstation.json").read_text())
+    assert report["parts"]["cuda tests"]["status"] == "skipped"
+    rows = report["parts"]["throughput"]["result"]
+    # Both nets, sync and multisync up to the machine's 2 cores, on the CPU alone.
+    assert [(r["net"], r["collector"], r["workers"]) for r in rows] == [
+        (net, kind, w) for net in ws.NETS for kind, w in (("sync", 1), ("multisync", 1), ("multisync", 2))
+    ]
+    assert all("device=cpu" in o for _, o in calls)
+    # bf16 x compile: the shipped setting is reused from the throughput rows, the other three measured.
+    settings = report["parts"]["update settings"]["result"]
+    assert [(r["precision"], r["compile"]) for r in settings] == [
+        ("fp32", False),
+        ("fp32", True),
+        ("bf16", False),
+        ("bf16", True),
+    ]
+    assert len(calls) == len(rows) + 3
+    assert "| cpu | spatial | multisync | 2 |" in (tmp_path / "workstation.md").read_text()
+
+
+def test_a_failing_part_is_recorded_and_fails_the_check(workstation, tmp_path, monkeypatch):
+    ws, _ = workstation
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(ws.os, "cpu_count", lambda: 1)
+
+    def broken(*a, **k):
+        raise RuntimeError("device mismatch")
+
+    monkeypatch.setattr(ws, "update_settings", broken)
+    assert ws.main(["--out", str(tmp_path), "--iterations", "1"]) == 1
+    report = json.loads((tmp_path / "workstation.json").read_text())
+    assert report["parts"]["update settings"] == {
+        "status": "failed",
+        "why": "RuntimeError: device mismatch",
+        "seconds": report["parts"]["update settings"]["seconds"],
+    }
+    assert report["parts"]["throughput"]["status"] == "ok"
