@@ -1,7 +1,7 @@
 """One check of a GPU workstation: does ``device=cuda`` train, resume and bench, and how does
 learning throughput scale with the collector's workers, on the GPU and on the CPU alone?
 
-    python benchmarks/workstation.py [--out runs/workstation] [--iterations 2] [--max-workers 8]
+    python benchmarks/workstation.py [--out runs/workstation] [--iterations 1] [--max-workers 8] [--minutes 7.5]
 
 In order, each part timed:
 
@@ -13,9 +13,12 @@ In order, each part timed:
    ``sync`` collector and with ``multisync`` at 1, 2, 4 and 8 workers (up to the machine's
    cores), on the GPU and on the CPU alone, with the collection/update split;
 4. the update's precision and compilation: bf16 on and off, ``torch.compile`` on and off (the
-   default net, ``sync``, on the GPU if there is one).
+   default net, ``sync``, on the GPU if there is one). Part 3 runs bf16 without compilation,
+   which would take a third of each setting's time; part 4 says what compilation adds.
 
-Writes ``workstation.json`` and ``workstation.md`` into ``--out`` and prints the table. On a machine
+The measurements go in order of need and none starts that would end after ``--minutes`` (judged
+by the longest so far); those left out are named. Writes ``workstation.json`` and
+``workstation.md`` into ``--out`` and prints the table. On a machine
 without CUDA it runs the CPU parts, says in one line which parts it skipped, and exits 0; a part
 that fails is recorded with its error and the script exits 1.
 """
@@ -41,10 +44,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from train_throughput import learning_throughput  # noqa: E402
 
 from mrchaos.core.atomic import write_atomic  # noqa: E402
-from mrchaos.learn.config import load_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 NETS = ("spatial", "spatial-context")
+#: The throughput grid's update settings: conf/full.yaml's bf16, without torch.compile, whose
+#: compilation would take a third of each setting's time (compile's gain is measured apart).
+GRID = {"precision": "bf16", "compile": False}
+#: Fewer chaos objects than a run's cache: built for every setting, they only feed the tasks.
+QUICK = ["task.cache.size=256"]
 
 
 def _cpu_name() -> str:
@@ -100,44 +107,93 @@ def smoke_on_cuda() -> dict[str, Any]:
         return {"iterations": len(rows) - 1, "bench": [ln for ln in out.splitlines() if ln.startswith("|")][-3:]}
 
 
-def throughput(device: str, iterations: int, worker_counts: list[int], cores: int) -> list[dict[str, Any]]:
-    """Learning throughput of each net, by collector and worker count, on one device."""
+class Budget:
+    """Starts no measurement that would end past the deadline, judged by the longest one so far,
+    and keeps the labels of those it skipped."""
+
+    def __init__(self, minutes: float) -> None:
+        self.deadline = time.perf_counter() + 60 * minutes
+        self.longest = 0.0
+        self.skipped: list[str] = []
+
+    def measure(self, label: str, fn: Callable[..., dict[str, Any]], *args: Any) -> dict[str, Any] | None:
+        """``fn(*args)``, or None (and ``label`` kept) if it would likely end past the deadline."""
+        if time.perf_counter() + self.longest > self.deadline:
+            self.skipped.append(label)
+            return None
+        t = time.perf_counter()
+        r = fn(*args)
+        self.longest = max(self.longest, time.perf_counter() - t)
+        return r
+
+
+def _grid_overrides(device: str, kind: str, workers: int, cores: int) -> list[str]:
+    # sync steps the env in this process on every core; multisync gives each worker one core, and
+    # the update uses all of them while the workers wait.
+    extra = (
+        [f"threads={cores}", f"env.physics.nthread={cores}"]
+        if kind == "sync"
+        else [f"threads={cores}", f"collector.workers={workers}", "collector.worker_threads=1"]
+    )
+    grid = [f"precision={GRID['precision']}", f"compile={str(GRID['compile']).lower()}", *QUICK]
+    return [f"device={device}", f"collector.kind={kind}", *extra, *grid]
+
+
+def throughput_plan(devices: list[str], worker_counts: list[int]) -> list[tuple[str, str, str, int]]:
+    """(device, net, collector, workers) in the order they are measured: what the README's scale-out
+    section needs first (the default net's sweep on the first device, the context net at both
+    ends, the CPU alone at both ends), then the rest, so that a tight budget drops the least."""
+    first, most = devices[0], max(worker_counts)
+    plan = [(first, "spatial", "sync", 1)] + [(first, "spatial", "multisync", w) for w in worker_counts]
+    plan += [(first, "spatial-context", "sync", 1), (first, "spatial-context", "multisync", most)]
+    for d in devices[1:]:
+        plan += [(d, "spatial", "sync", 1), (d, "spatial", "multisync", most)]
+    rest = [
+        (d, net, kind, w)
+        for d in devices
+        for net in NETS
+        for kind, w in [("sync", 1)] + [("multisync", w) for w in worker_counts]
+    ]
+    return plan + [s for s in rest if s not in plan]
+
+
+def throughput(
+    settings: list[tuple[str, str, str, int]], iterations: int, cores: int, budget: Budget
+) -> list[dict[str, Any]]:
+    """Learning throughput of each (device, net, collector, workers) setting the budget leaves time for."""
     out = []
-    for net in NETS:
-        settings = [("sync", 1)] + [("multisync", w) for w in worker_counts]
-        for kind, workers in settings:
-            # sync steps the env in this process on every core; multisync gives each worker one
-            # core, and the update uses all of them while the workers wait.
-            extra = (
-                [f"threads={cores}", f"env.physics.nthread={cores}"]
-                if kind == "sync"
-                else [f"threads={cores}", f"collector.workers={workers}", "collector.worker_threads=1"]
-            )
-            r = learning_throughput(net, iterations, [f"device={device}", f"collector.kind={kind}", *extra])
+    for device, net, kind, workers in settings:
+        label = f"{device} {net} {kind} x{workers}"
+        r = budget.measure(label, learning_throughput, net, iterations, _grid_overrides(device, kind, workers, cores))
+        if r is not None:
             out.append({"device": device, "net": net, "collector": kind, "workers": workers, **r})
-            print(f"  {device:>4} {net:>15} {kind:>9} x{workers}: {r['steps_per_s']:.0f} steps/s", flush=True)
+            print(f"  {label}: {r['steps_per_s']:.0f} steps/s", flush=True)
     return out
 
 
-def update_settings(device: str, iterations: int, cores: int, measured: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """The default net's throughput (``sync``) with bf16 and compilation on and off; the shipped
-    setting (``conf/full.yaml``: bf16, compiled) is taken from the throughput part's row."""
-    shipped = load_config(ROOT / "conf" / "full.yaml")
+def update_settings(
+    device: str, iterations: int, cores: int, measured: list[dict[str, Any]], budget: Budget
+) -> list[dict[str, Any]]:
+    """The default net's throughput (``sync``) with bf16 and compilation on and off; the grid's own
+    setting is taken from the throughput part's row."""
     out = []
-    for precision in ("fp32", "bf16"):
-        for compiled in (False, True):
-            same = [
-                r
-                for r in measured
-                if (r["device"], r["net"], r["collector"]) == (device, "spatial", "sync")
-                and (precision, compiled) == (shipped.precision, shipped.compile)
-            ]
-            if same:
-                r = {k: same[0][k] for k in ("params", "steps_per_s", "collect_s", "update_s")}
-            else:
-                overrides = [f"device={device}", f"precision={precision}", f"compile={str(compiled).lower()}"]
-                threads = [f"threads={cores}", f"env.physics.nthread={cores}"]
-                r = learning_throughput("spatial", iterations, [*overrides, *threads])
+    # The shipped setting (conf/full.yaml: bf16, compiled) and the plain one first: a tight budget
+    # drops the others.
+    for precision, compiled in (("bf16", True), ("fp32", False), ("fp32", True), ("bf16", False)):
+        same = [
+            r
+            for r in measured
+            if (r["device"], r["net"], r["collector"]) == (device, "spatial", "sync")
+            and (precision, compiled) == (GRID["precision"], GRID["compile"])
+        ]
+        if same:
+            r = {k: same[0][k] for k in ("params", "steps_per_s", "collect_s", "update_s")}
+        else:
+            overrides = [f"device={device}", f"precision={precision}", f"compile={str(compiled).lower()}"]
+            threads = [f"threads={cores}", f"env.physics.nthread={cores}"]
+            label = f"{device} spatial sync {precision} compile={compiled}"
+            r = budget.measure(label, learning_throughput, "spatial", iterations, [*overrides, *threads, *QUICK])
+        if r is not None:
             out.append({"device": device, "precision": precision, "compile": compiled, **r})
             print(f"  {device:>4} {precision} compile={compiled}: {r['steps_per_s']:.0f} steps/s", flush=True)
     return out
@@ -156,11 +212,11 @@ def markdown(report: dict[str, Any]) -> str:
         lines.append(
             f"| {name} | {part['status']}{': ' + part['why'] if part.get('why') else ''} | {part['seconds']:.0f} |"
         )
-    rows = report["parts"].get("throughput", {}).get("result") or []
+    rows = [r for part in ("throughput", "more throughput") for r in report["parts"].get(part, {}).get("result") or []]
     if rows:
         lines += [
             "",
-            "End-to-end PPO learning throughput, `conf/full.yaml` (4096 frames an iteration):",
+            "End-to-end PPO learning throughput, `conf/full.yaml` (4096 frames an iteration), bf16, not compiled:",
             "",
             "| device | net | collector | workers | steps/s | collect s/it | update s/it |",
             "|---|---|---|---|---|---|---|",
@@ -190,25 +246,36 @@ def markdown(report: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "workstation")
-    ap.add_argument("--iterations", type=int, default=2, help="measured iterations per setting (after one warm-up)")
+    ap.add_argument("--iterations", type=int, default=1, help="measured iterations per setting (after one warm-up)")
     ap.add_argument("--max-workers", type=int, default=8, help="the most multisync workers to try")
+    ap.add_argument("--minutes", type=float, default=7.5, help="start no measurement that would end later than this")
     args = ap.parse_args(argv)
     cores = os.cpu_count() or 1
     cuda = torch.cuda.is_available()
     workers = [w for w in (1, 2, 4, 8) if w <= min(args.max_workers, cores)]
     devices = ["cuda", "cpu"] if cuda else ["cpu"]
     measured: list[dict[str, Any]] = []
+    budget = Budget(args.minutes)
+    plan = throughput_plan(devices, workers)
+    # The context net's other worker counts come last: measured only if the budget allows.
+    first_pass = plan[: len(workers) + 3 + 2 * (len(devices) - 1)]
 
     def grid() -> list[dict[str, Any]]:
-        for d in devices:
-            measured.extend(throughput(d, args.iterations, workers, cores))
+        measured.extend(throughput(first_pass, args.iterations, cores, budget))
         return measured
+
+    def update() -> list[dict[str, Any]]:
+        return update_settings(devices[0], args.iterations, cores, measured, budget)
+
+    def rest() -> list[dict[str, Any]]:
+        return throughput(plan[len(first_pass) :], args.iterations, cores, budget)
 
     parts: list[tuple[str, bool, Callable[[], Any]]] = [
         ("cuda tests", cuda, cuda_tests),
         ("smoke on cuda", cuda, smoke_on_cuda),
         ("throughput", True, grid),
-        ("update settings", True, lambda: update_settings(devices[0], args.iterations, cores, measured)),
+        ("update settings", True, update),
+        ("more throughput", True, rest),
     ]
     report: dict[str, Any] = {"machine": machine(), "parts": {}}
     print(f"workstation check on {report['machine']['cpu']} ({cores} cores), GPU: {report['machine']['gpu'] or 'none'}")
@@ -231,6 +298,9 @@ def main(argv: list[str] | None = None) -> int:
         entry["seconds"] = time.perf_counter() - t
         report["parts"][name] = entry
     report["seconds"] = time.perf_counter() - t_all
+    report["skipped_settings"] = budget.skipped
+    if budget.skipped:
+        print(f"over the {args.minutes:g}-minute budget, not measured: {'; '.join(budget.skipped)}")
     args.out.mkdir(parents=True, exist_ok=True)
     write_atomic(args.out / "workstation.json", json.dumps(report, indent=1) + "\n")
     md = markdown(report)

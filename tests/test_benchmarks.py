@@ -35,19 +35,26 @@ def test_the_workstation_check_runs_the_cpu_parts_and_says_what_it_skipped(works
     assert "skipped (no CUDA device): cuda tests, smoke on cuda" in out
     report = json.loads((tmp_path / "workstation.json").read_text())
     assert report["parts"]["cuda tests"]["status"] == "skipped"
-    rows = report["parts"]["throughput"]["result"]
-    # Both nets, sync and multisync up to the machine's 2 cores, on the CPU alone.
+    rows = report["parts"]["throughput"]["result"] + report["parts"]["more throughput"]["result"]
+    # Both nets, sync and multisync up to the machine's 2 cores, on the CPU alone; the default net's
+    # sweep and the context net's ends first.
     assert [(r["net"], r["collector"], r["workers"]) for r in rows] == [
-        (net, kind, w) for net in ws.NETS for kind, w in (("sync", 1), ("multisync", 1), ("multisync", 2))
+        ("spatial", "sync", 1),
+        ("spatial", "multisync", 1),
+        ("spatial", "multisync", 2),
+        ("spatial-context", "sync", 1),
+        ("spatial-context", "multisync", 2),
+        ("spatial-context", "multisync", 1),
     ]
+    assert report["skipped_settings"] == []
     assert all("device=cpu" in o for _, o in calls)
-    # bf16 x compile: the shipped setting is reused from the throughput rows, the other three measured.
+    # bf16 x compile: the grid's setting is reused from the throughput rows, the other three measured.
     settings = report["parts"]["update settings"]["result"]
     assert [(r["precision"], r["compile"]) for r in settings] == [
+        ("bf16", True),
         ("fp32", False),
         ("fp32", True),
         ("bf16", False),
-        ("bf16", True),
     ]
     assert len(calls) == len(rows) + 3
     assert "| cpu | spatial | multisync | 2 |" in (tmp_path / "workstation.md").read_text()
@@ -70,3 +77,14 @@ def test_a_failing_part_is_recorded_and_fails_the_check(workstation, tmp_path, m
         "seconds": report["parts"]["update settings"]["seconds"],
     }
     assert report["parts"]["throughput"]["status"] == "ok"
+
+
+def test_the_workstation_check_starts_nothing_past_its_budget(workstation, tmp_path, capsys, monkeypatch):
+    ws, calls = workstation
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setattr(ws.os, "cpu_count", lambda: 2)
+    assert ws.main(["--out", str(tmp_path), "--minutes", "0"]) == 0
+    assert calls == []
+    report = json.loads((tmp_path / "workstation.json").read_text())
+    assert "cpu spatial sync x1" in report["skipped_settings"] and len(report["skipped_settings"]) == 6 + 4
+    assert "over the 0-minute budget, not measured: cpu spatial sync x1" in capsys.readouterr().out

@@ -45,12 +45,21 @@ TABLES: dict[str, list[str]] = {
     + [a for p in TANGRAM_POLICIES for a in ("--policy", p)],
     # docs/getting-started.md: the main job, on the built-in library (no external data).
     "builtin": ["--families", "all", "--policy", "mrchaos-dense-ppo", "--policy", "mrchaos", "--policy", "oracle"],
+    # docs/training.md: the windowed mode, off for the policies shipped with it and on for two shipped without.
+    "window1": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--mode-window", "1",
+                "--policy", "mrchaos-dense-ppo", "--policy", "mrchaos-dense"],
+    "window3": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--mode-window", "3",
+                "--policy", "mrchaos-bc-chaos", "--policy", "mrchaos"],
     # docs/training.md: the lookahead planner around the shipped policies (not the paper's protocol).
     "lookahead3": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--lookahead", "3"]
     + [a for p in ("mrchaos-exit", "mrchaos-dense-ppo", "mrchaos-dense", "mrchaos-bc-chaos", "mrchaos")
        for a in ("--policy", p)],
-    "lookahead10": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--lookahead", "10"]
-    + [a for p in ("mrchaos-exit", "mrchaos-dense-ppo", "mrchaos-wo-global") for a in ("--policy", p)],
+    # docs/benchmark.md: the other tasks, their authored goals and 200 chaos objects.
+    "cutlery": ["--task", "cutlery", "--policy", "mrchaos-cutlery", "--policy", "oracle", "--policy", "random"],
+    "soda": ["--task", "soda", "--policy", "mrchaos-soda", "--policy", "oracle", "--policy", "random"],
+    # docs/robot-and-flip.md: the shipped mrchaos placed by teleport and by the simulated UR5e.
+    "placement_teleport": ["--families", "all", "--placement", "teleport", "--policy", "mrchaos"],
+    "placement_robot": ["--families", "all", "--placement", "robot", "--policy", "mrchaos"],
     # docs/robot-and-flip.md: the flip policy beside one that cannot flip, on the figures as
     # published and reflected in x (every one of them then needs the parallelogram turned over).
     "flip": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--policy", "mrchaos-flip",

@@ -46,7 +46,7 @@ SHIPPED = {
     "mrchaos-dense": ("mrchaos-dense.pt", "dense counterfactual supervision on chaos (conf/dense.yaml)"),
     "mrchaos-dense-ppo": ("mrchaos-dense-ppo.pt", "PPO on top of mrchaos-dense (conf/dense_ppo.yaml)"),
     "mrchaos-exit": ("mrchaos-exit.pt", "expert iteration on top of mrchaos-dense (conf/exit.yaml)"),
-    "mrchaos-flip": ("mrchaos-flip.pt", "MRChaos with the flip for chiral pieces (conf/flip.yaml)"),
+    "mrchaos-flip": ("mrchaos-flip.pt", "dense supervision and DAgger with the flip (conf/flip_dense.yaml)"),
     "mrchaos-cutlery": ("mrchaos-cutlery.pt", "MRChaos on cutlery (conf/cutlery.yaml)"),
     "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),
 }
