@@ -49,7 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 NETS = ("spatial", "spatial-context")
 #: The throughput grid's update settings: conf/full.yaml's bf16, without torch.compile, whose
 #: compilation would take a third of each setting's time (compile's gain is measured apart).
-GRID = {"precision": "bf16", "compile": False}
+GRID_PRECISION, GRID_COMPILE = "bf16", False
 #: Fewer chaos objects than a run's cache: built for every setting, they only feed the tasks.
 QUICK = ["task.cache.size=256"]
 
@@ -127,7 +127,15 @@ class Budget:
         return r
 
 
-def _grid_overrides(device: str, kind: str, workers: int, cores: int) -> list[str]:
+def _overrides(
+    device: str,
+    kind: str,
+    workers: int,
+    cores: int,
+    precision: str = GRID_PRECISION,
+    compiled: bool = GRID_COMPILE,
+) -> list[str]:
+    """The config overrides of one throughput setting (the grid's update settings unless told)."""
     # sync steps the env in this process on every core; multisync gives each worker one core, and
     # the update uses all of them while the workers wait.
     extra = (
@@ -135,36 +143,37 @@ def _grid_overrides(device: str, kind: str, workers: int, cores: int) -> list[st
         if kind == "sync"
         else [f"threads={cores}", f"collector.workers={workers}", "collector.worker_threads=1"]
     )
-    grid = [f"precision={GRID['precision']}", f"compile={str(GRID['compile']).lower()}", *QUICK]
-    return [f"device={device}", f"collector.kind={kind}", *extra, *grid]
+    update = [f"precision={precision}", f"compile={str(compiled).lower()}"]
+    return [f"device={device}", f"collector.kind={kind}", *extra, *update, *QUICK]
 
 
-def throughput_plan(devices: list[str], worker_counts: list[int]) -> list[tuple[str, str, str, int]]:
-    """(device, net, collector, workers) in the order they are measured: what the README's scale-out
-    section needs first (the default net's sweep on the first device, the context net at both
-    ends, the CPU alone at both ends), then the rest, so that a tight budget drops the least."""
+Setting = tuple[str, str, str, int]  # device, net, collector kind, workers
+
+
+def throughput_plan(devices: list[str], worker_counts: list[int]) -> tuple[list[Setting], list[Setting]]:
+    """(device, net, collector, workers) settings in the order they are measured: first what the
+    README's scale-out section needs (the default net's sweep on the first device, the context net
+    at both ends, the CPU alone at both ends), then the rest, so that a tight budget drops the least."""
     first, most = devices[0], max(worker_counts)
-    plan = [(first, "spatial", "sync", 1)] + [(first, "spatial", "multisync", w) for w in worker_counts]
-    plan += [(first, "spatial-context", "sync", 1), (first, "spatial-context", "multisync", most)]
+    needed = [(first, "spatial", "sync", 1)] + [(first, "spatial", "multisync", w) for w in worker_counts]
+    needed += [(first, "spatial-context", "sync", 1), (first, "spatial-context", "multisync", most)]
     for d in devices[1:]:
-        plan += [(d, "spatial", "sync", 1), (d, "spatial", "multisync", most)]
-    rest = [
+        needed += [(d, "spatial", "sync", 1), (d, "spatial", "multisync", most)]
+    every = [
         (d, net, kind, w)
         for d in devices
         for net in NETS
         for kind, w in [("sync", 1)] + [("multisync", w) for w in worker_counts]
     ]
-    return plan + [s for s in rest if s not in plan]
+    return needed, [s for s in every if s not in needed]
 
 
-def throughput(
-    settings: list[tuple[str, str, str, int]], iterations: int, cores: int, budget: Budget
-) -> list[dict[str, Any]]:
+def throughput(settings: list[Setting], iterations: int, cores: int, budget: Budget) -> list[dict[str, Any]]:
     """Learning throughput of each (device, net, collector, workers) setting the budget leaves time for."""
     out = []
     for device, net, kind, workers in settings:
         label = f"{device} {net} {kind} x{workers}"
-        r = budget.measure(label, learning_throughput, net, iterations, _grid_overrides(device, kind, workers, cores))
+        r = budget.measure(label, learning_throughput, net, iterations, _overrides(device, kind, workers, cores))
         if r is not None:
             out.append({"device": device, "net": net, "collector": kind, "workers": workers, **r})
             print(f"  {label}: {r['steps_per_s']:.0f} steps/s", flush=True)
@@ -176,23 +185,20 @@ def update_settings(
 ) -> list[dict[str, Any]]:
     """The default net's throughput (``sync``) with bf16 and compilation on and off; the grid's own
     setting is taken from the throughput part's row."""
+    grid_row = next(
+        (r for r in measured if (r["device"], r["net"], r["collector"]) == (device, "spatial", "sync")), None
+    )
     out = []
     # The shipped setting (conf/full.yaml: bf16, compiled) and the plain one first: a tight budget
     # drops the others.
     for precision, compiled in (("bf16", True), ("fp32", False), ("fp32", True), ("bf16", False)):
-        same = [
-            r
-            for r in measured
-            if (r["device"], r["net"], r["collector"]) == (device, "spatial", "sync")
-            and (precision, compiled) == (GRID["precision"], GRID["compile"])
-        ]
-        if same:
-            r = {k: same[0][k] for k in ("params", "steps_per_s", "collect_s", "update_s")}
+        r: dict[str, Any] | None
+        if (precision, compiled) == (GRID_PRECISION, GRID_COMPILE) and grid_row is not None:
+            r = {k: grid_row[k] for k in ("params", "steps_per_s", "collect_s", "update_s")}
         else:
-            overrides = [f"device={device}", f"precision={precision}", f"compile={str(compiled).lower()}"]
-            threads = [f"threads={cores}", f"env.physics.nthread={cores}"]
             label = f"{device} spatial sync {precision} compile={compiled}"
-            r = budget.measure(label, learning_throughput, "spatial", iterations, [*overrides, *threads, *QUICK])
+            overrides = _overrides(device, "sync", 1, cores, precision, compiled)
+            r = budget.measure(label, learning_throughput, "spatial", iterations, overrides)
         if r is not None:
             out.append({"device": device, "precision": precision, "compile": compiled, **r})
             print(f"  {device:>4} {precision} compile={compiled}: {r['steps_per_s']:.0f} steps/s", flush=True)
@@ -256,19 +262,18 @@ def main(argv: list[str] | None = None) -> int:
     devices = ["cuda", "cpu"] if cuda else ["cpu"]
     measured: list[dict[str, Any]] = []
     budget = Budget(args.minutes)
-    plan = throughput_plan(devices, workers)
-    # The context net's other worker counts come last: measured only if the budget allows.
-    first_pass = plan[: len(workers) + 3 + 2 * (len(devices) - 1)]
+    # The settings not needed first come last: measured only if the budget allows.
+    needed, later = throughput_plan(devices, workers)
 
     def grid() -> list[dict[str, Any]]:
-        measured.extend(throughput(first_pass, args.iterations, cores, budget))
+        measured.extend(throughput(needed, args.iterations, cores, budget))
         return measured
 
     def update() -> list[dict[str, Any]]:
         return update_settings(devices[0], args.iterations, cores, measured, budget)
 
     def rest() -> list[dict[str, Any]]:
-        return throughput(plan[len(first_pass) :], args.iterations, cores, budget)
+        return throughput(later, args.iterations, cores, budget)
 
     parts: list[tuple[str, bool, Callable[[], Any]]] = [
         ("cuda tests", cuda, cuda_tests),

@@ -93,8 +93,8 @@ def _scrub(out: Path) -> None:
 def regenerate(name: str, figures_dir: str) -> None:
     """Run table ``name``'s commands and write its files into ``docs/results/<name>/``."""
     *made, bench = commands(name, figures_dir)
-    (ROOT / MIRRORED).parent.mkdir(parents=True, exist_ok=True)
     for cmd in made:
+        (ROOT / MIRRORED).parent.mkdir(parents=True, exist_ok=True)
         subprocess.run([sys.executable, *cmd[1:]] if cmd[0] == "python" else cmd, check=True, cwd=ROOT)
     with tempfile.TemporaryDirectory() as tmp:
         subprocess.run([*bench, "--out", tmp], check=True, cwd=ROOT)
