@@ -152,6 +152,7 @@ def main() -> None:
     ap.add_argument("--eval", type=int, default=200)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--save", type=Path, help="afterstate: write the trained re-ranker's weights here")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -227,6 +228,11 @@ def main() -> None:
             a, r = judge(all_scores(d, ranker), d["iou"])
             cells.append(f"{name} agreement {100 * a:.1f} %, regret {r:.4f}")
         print(f"epoch {epoch} ({time.perf_counter() - t0:.0f} s): " + "; ".join(cells), flush=True)
+
+    if args.save is not None and ranker is not None:
+        args.save.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"ranker": ranker.state_dict(), "args": {k: str(v) for k, v in vars(args).items()}}, args.save)
+        print(f"wrote {args.save}")
 
     if args.eval:
         targets, _, mirrored = generate(

@@ -21,8 +21,8 @@ import torch
 
 from mrchaos.core.atomic import write_atomic
 from mrchaos.core.errors import MrchaosError
-from mrchaos.env.oracle import oracle_actions
-from mrchaos.env.tangram import TangramEnv
+from mrchaos.env.oracle import oracle_actions, random_pieces
+from mrchaos.env.tangram import ORDERS, TangramEnv
 from mrchaos.figures.families import FamilyRule, family_of
 from mrchaos.figures.figure import Figure, FigureSet
 from mrchaos.figures.pieces import get_piece_set, piece_set_names
@@ -45,7 +45,16 @@ from mrchaos.learn.planner import Lookahead
 from mrchaos.tasks.chaos import generate
 from mrchaos.tasks.presets import TaskPreset, get_preset
 
-__all__ = ["BenchError", "PolicySpec", "resolve_policy", "parse_families", "Bench", "piece_breakdown"]
+__all__ = [
+    "BenchError",
+    "PolicySpec",
+    "resolve_policy",
+    "parse_families",
+    "Bench",
+    "piece_breakdown",
+    "piece_coverage",
+    "chosen_order",
+]
 
 METRICS = ("rela", "final", "iou", "strict_rela")
 #: A placement covering less than this share of its slot counts as misplaced in the per-piece table.
@@ -71,6 +80,12 @@ class PolicySpec:
         """Whether the policy was trained to choose the face of chiral pieces (a checkpoint whose
         action grid has the flip); the baselines get the flip only from the bench's own switch."""
         return self.state is not None and bool(policy_env(self.state).get("grid", {}).get("flip", False))
+
+    @property
+    def order(self) -> str:
+        """The assembly order a checkpoint was trained with ("fixed" for the baselines and for
+        checkpoints from before free order)."""
+        return "fixed" if self.state is None else str(policy_env(self.state).get("order", "fixed"))
 
 
 def resolve_policy(spec: str) -> PolicySpec:
@@ -145,6 +160,9 @@ class Bench:
         lookahead: candidates per step of a test-time planner around checkpoint policies (1: none).
         mode_window: overrides the checkpoints' ``policy.mode_window`` (how the spatial policy's
             deterministic action is read); None keeps each checkpoint's own.
+        order: "fixed" (the set's order) or "free" (the policy chooses the piece too): random and
+            oracle draw each piece among the allowed ones; a checkpoint keeps the order it was
+            trained with, and a fixed-order one cannot play free order.
     """
 
     def __init__(
@@ -165,7 +183,13 @@ class Bench:
         lookahead: int = 1,
         mode_window: int | None = None,
         random_mirror: float = 0.0,
+        order: str = "fixed",
     ) -> None:
+        if order not in ORDERS:
+            raise BenchError(f"--order must be one of {ORDERS}, got {order!r}")
+        if order == "free" and lookahead > 1:
+            raise BenchError("--lookahead plans in the set's order; it does not choose pieces (--order fixed)")
+        self.order = order
         if placement not in ("teleport", "robot"):
             raise BenchError(f"placement must be 'teleport' or 'robot', got {placement!r}")
         if scenes and placement != "robot":
@@ -278,18 +302,31 @@ class Bench:
         }
         if spec.state is not None:
             env.update(policy_env(spec.state))
-        elif self.flip:
-            env["grid"] = {"flip": True}
+            if self.order == "free" and env.get("order", "fixed") == "fixed":
+                raise BenchError(f"{spec.path}: trained with fixed order, it does not choose pieces (--order free)")
+        else:
+            env["order"] = self.order
+            if self.flip:
+                env["grid"] = {"flip": True}
         cfg = config_from_dict({"env": env, "task": {"preset": self.task}}, f"bench env ({spec.name})").env_config()
         return TangramEnv(dataclasses.replace(cfg, task=cfg.task.given_targets()), seed=self.seed)
 
     def actor(self, spec: PolicySpec, env: TangramEnv):
+        g = torch.Generator().manual_seed(self.seed)
         if spec.kind == "oracle":
+            if env.free_order:
+                return lambda e, td: oracle_actions(e, random_pieces(e, g))
             return lambda e, td: oracle_actions(e)
         if spec.kind == "random":
-            g = torch.Generator().manual_seed(self.seed)
             nvec = torch.tensor(env.grid.nvec)
-            return lambda e, td: (torch.rand((e.batch_size[0], 3), generator=g) * nvec).long()
+
+            def uniform(e: TangramEnv, td) -> torch.Tensor:
+                a = (torch.rand((e.batch_size[0], 3), generator=g) * nvec).long()
+                if e.free_order:
+                    a = torch.cat([torch.as_tensor(random_pieces(e, g))[:, None], a], 1)
+                return a
+
+            return uniform
         policy = self.policy_operator(spec, env)
         if self.lookahead > 1:
             assert spec.state is not None  # a checkpoint's spec carries its state
@@ -350,6 +387,8 @@ class Bench:
                 label += f", mode window {self.mode_window}"
             if self.lookahead > 1 and spec.kind == "checkpoint":
                 label += f" + lookahead {self.lookahead}"
+            if self.order == "free" and spec.kind != "checkpoint":
+                label += ", random order"
             results["policies"][spec.name] = {"label": label, "families": per_fam}
         results["task"] = self.task
         results["piece_names"] = list(self.piece_set.names)
@@ -359,6 +398,8 @@ class Bench:
         results["lookahead"] = self.lookahead
         results["mode_window"] = self.mode_window
         results["needs_flip"] = {fam: self.needs_flip.get(fam, 0) for fam in results["counts"]}
+        if any(pol["families"][f].get("chosen_order") for pol in results["policies"].values() for f in pol["families"]):
+            results["order"] = "free"  # fixed-order results keep their earlier keys, unchanged
         if self.perturb_after is not None:
             results["perturb"] = {"after_step": self.perturb_after, "distance_m": self.perturb_distance}
         return results
@@ -407,7 +448,10 @@ class Bench:
     def summary(self, res: EpisodeResults) -> dict:
         """A family's summaries: every metric, robot failures per placement, the push's effect."""
         out: dict = {m: summarise(getattr(res, m)) for m in METRICS}
-        out["by_piece"] = piece_breakdown(res.step_coverage)
+        out["by_piece"] = piece_breakdown(piece_coverage(res.step_coverage, res.order))
+        fixed = (res.order == np.arange(res.order.shape[1])) | (res.order < 0)
+        if not fixed.all():
+            out["chosen_order"] = chosen_order(res.order)
         if self.placement == "robot":
             # Failures per placement: each episode places every piece once.
             assert res.failures is not None  # evaluate counts them for every placement
@@ -432,6 +476,21 @@ class Bench:
                     self.video_frames.extend(frames)
 
         return on_step
+
+
+def piece_coverage(step_coverage: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """(n, P) each piece's coverage when placed, from each step's coverage and the piece it placed
+    (NaN where an episode has no such piece; the same array with fixed order)."""
+    out = np.full(step_coverage.shape, np.nan)
+    ep, step = np.nonzero(order >= 0)
+    out[ep, order[ep, step]] = step_coverage[ep, step]
+    return out
+
+
+def chosen_order(order: np.ndarray) -> list[list[float]]:
+    """(steps x P) the share of episodes that placed each piece at each step (free order)."""
+    p = order.shape[1]
+    return [[float((order[:, t] == i).mean()) for i in range(p)] for t in range(p)]
 
 
 def piece_breakdown(step_coverage: np.ndarray, misplaced_below: float = MISPLACED_BELOW) -> dict[str, list[float]]:
@@ -475,6 +534,28 @@ def format_piece_table(results: dict, families: list[str]) -> str:
             ]
             lines.append("| " + " | ".join([pol["label"], f] + cells + [""] * (width - len(cells))) + " |")
     return "\n".join(lines)
+
+
+def format_order_table(results: dict, families: list[str]) -> str:
+    """Markdown: which piece each free-order policy placed at each step (% of episodes), per family."""
+    fams = [f for f in families if f in results["counts"]]
+    names = list(results["piece_names"])
+    blocks = []
+    for pol in results["policies"].values():
+        for f in fams:
+            shares = pol["families"][f].get("chosen_order")
+            if not shares:
+                continue
+            lines = [
+                f"**Order chosen, {pol['label']}, {f}: % of episodes placing each piece at each step**",
+                "",
+                "| step | " + " | ".join(names[: len(shares[0])]) + " |",
+                "|" + "---|" * (len(shares[0]) + 1),
+            ]
+            for t, row in enumerate(shares):
+                lines.append(f"| {t + 1} | " + " | ".join(f"{100 * v:.0f}" for v in row) + " |")
+            blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)
 
 
 def format_table(results: dict, families: list[str], markdown: bool = False) -> str:
@@ -546,6 +627,9 @@ def write_outputs(results: dict, families: list[str], out: Path) -> None:
     pieces = format_piece_table(results, families)
     if pieces:
         md += ["", pieces]
+    order = format_order_table(results, families)
+    if order:
+        md += ["", order]
     if any(results.get("needs_flip", {}).values()):
         md += [
             "",

@@ -85,6 +85,14 @@ def _parser() -> argparse.ArgumentParser:
         help="turn each Random object's chiral pieces over with probability P (with --flip), "
         "as a flip policy's training objects are",
     )
+    ap.add_argument(
+        "--order",
+        choices=["fixed", "free"],
+        default="fixed",
+        help="fixed: pieces go down in the set's order (the paper's task); free: the policy chooses "
+        "which piece goes next (random and oracle draw it among the pieces left). Implied when a "
+        "policy was trained with free order",
+    )
     ap.add_argument("--out", type=Path, default=Path("runs/bench"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--worlds", type=int, default=64, help="worlds evaluated at once")
@@ -132,6 +140,9 @@ def _bench(args: argparse.Namespace) -> int:
             + ": figures that need a piece turned over are evaluated",
             file=sys.stderr,
         )
+    order = "free" if args.order == "free" or any(s.order == "free" for s in specs) else "fixed"
+    if order != args.order:
+        print("--order free implied by " + ", ".join(s.name for s in specs if s.order == "free"), file=sys.stderr)
     sets = [load_figures(p) for p in args.figures] if args.figures else None  # None: the task's own goals
     if args.video and args.video.suffix.lower() not in (".gif", ".mp4"):
         raise ValueError(f"{args.video}: --video must end in .gif or .mp4")
@@ -158,6 +169,7 @@ def _bench(args: argparse.Namespace) -> int:
         lookahead=args.lookahead,
         mode_window=args.mode_window,
         random_mirror=args.random_mirror,
+        order=order,
     )
     for fid, why in bench.skipped:
         print(f"skipped {fid}: {why}", file=sys.stderr)

@@ -1,15 +1,22 @@
 """``TangramEnv``: N batched MuJoCo tangram worlds as one TorchRL environment.
 
 Task description:
-    Place the pieces of a piece set one at a time, in the set's order, so that the
-    assembly covers the silhouette prompt. Each step places piece t at the action's
-    pose (teleport placement followed by MuJoCo settling, see :mod:`mrchaos.sim.worlds`).
+    Place the pieces of a piece set one at a time so that the assembly covers the silhouette
+    prompt. In the set's order (``env.order: fixed``, the paper's task) each step places piece t;
+    with ``env.order: free`` the policy chooses which piece goes next as well as where. Each step
+    places the piece at the action's pose (teleport placement followed by MuJoCo settling, or the
+    robot, see :mod:`mrchaos.sim.worlds`).
 Observation:
     ``observation`` uint8 (N, 2, H, W): the silhouette I_s stacked on the current
-    top-down view I_tc. The step index is not observed.
+    top-down view I_tc. The step index is not observed. With free order also ``remaining``
+    bool (N, P), the pieces not yet placed, and ``action_mask`` bool (N, P + X + Y + O), TorchRL's
+    mask of a ``MultiCategorical`` action (one entry per outcome of each component): the piece
+    component allows the first unplaced piece of each twin group (twins are one choice); the grid
+    components are never masked. A finished world's action is ignored, so nothing is masked there.
 Action:
     ``action`` int64 (N, 3): indices into the (x, y, theta) grid (``MultiCategorical``); with
     ``env.grid.flip`` the theta index also says whether a chiral piece goes down turned over.
+    With free order (N, 4): (piece, x, y, theta); an action on a masked piece is an error.
 Reward:
     the coverage of piece t's target slot by piece t (twins take the better slot),
     with the reference's shaping, penetration and angle switches from config; every
@@ -57,10 +64,12 @@ from mrchaos.sim.scene import SceneConfig
 from mrchaos.sim.worlds import PhysicsConfig, Worlds
 from mrchaos.tasks.sampler import TargetBatch, TargetSampler, TaskConfig
 
-__all__ = ["EnvConfig", "NoiseConfig", "TangramEnv", "OracleTargets", "ROBOT_FAILURES"]
+__all__ = ["EnvConfig", "NoiseConfig", "TangramEnv", "OracleTargets", "ROBOT_FAILURES", "ORDERS"]
 
 #: Failure flags of robot placement in the step info (always False with teleport placement).
 ROBOT_FAILURES = ("unreachable", "missed", "dropped", "collision", "flip_failed")
+#: Assembly orders: the set's own, or chosen by the policy at every step.
+ORDERS = ("fixed", "free")
 #: Where the env's wall-clock time goes (seconds, see :meth:`TangramEnv.timings`).
 TIMERS = ("physics", "images", "reward")
 
@@ -96,6 +105,8 @@ class EnvConfig:
         reward: the training reward's switches (see :mod:`mrchaos.env.rewards`).
         noise: action noise and camera jitter.
         task: where targets come from (the config's top-level ``task`` group).
+        order: "fixed" (pieces go down in the set's order, the paper's task) or "free" (the
+            action also chooses the piece; see the module docstring).
     """
 
     num_worlds: int = 16
@@ -111,8 +122,11 @@ class EnvConfig:
     reward: RewardConfig = field(default_factory=RewardConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     task: TaskConfig = field(default_factory=TaskConfig)
+    order: str = "fixed"
 
     def __post_init__(self) -> None:
+        if self.order not in ORDERS:
+            raise ValueError(f"env.order must be one of {ORDERS}, got {self.order!r}")
         if self.camera not in ("raster", "mujoco"):
             raise ValueError(f"env.camera must be 'raster' or 'mujoco', got {self.camera!r}")
         if self.placement not in ("teleport", "robot"):
@@ -142,9 +156,10 @@ class TangramEnv(EnvBase):
 
     Public surface beyond TorchRL's: :meth:`reset_to` (given targets), :meth:`place_poses`
     (continuous poses), :meth:`perturb`, :meth:`current`, :meth:`oracle_targets`,
-    :meth:`rng_state` / :meth:`set_rng_state`, :meth:`film` / :meth:`take_snapshots`,
-    :meth:`timings`, and the read-only ``piece_set``, ``view``, ``grid``, ``num_pieces``,
-    ``next_piece`` and ``scene_model``.
+    :meth:`choosable`, :meth:`rng_state` / :meth:`set_rng_state`, :meth:`film` /
+    :meth:`take_snapshots`, :meth:`timings`, and the read-only ``piece_set``, ``view``, ``grid``,
+    ``num_pieces``, ``free_order``, ``next_piece`` (the step: with fixed order, the piece placed
+    next) and ``scene_model``.
     """
 
     batch_locked = True
@@ -163,6 +178,7 @@ class TangramEnv(EnvBase):
         self.view = cfg.view
         self.grid = cfg.grid
         self.obs_cfg = cfg.observation
+        self.free_order = cfg.order == "free"
         # One height level of the view per piece thickness (the thinnest piece's).
         self._thickness = min(p.thickness for p in self.piece_set.pieces)
         robot = cfg.robot if cfg.placement == "robot" else None
@@ -183,6 +199,7 @@ class TangramEnv(EnvBase):
         self._shaped = torch.as_tensor(areas > areas.min() + 1e-12)
         self._period = torch.as_tensor([pc.symmetry_period for pc in self.piece_set.pieces], dtype=torch.float32)
         self._twins = self.piece_set.twin_matrix()
+        self._twin_rep = self.piece_set.twin_group_of()
         self._chiral = self.piece_set.chiral
         # Per-world episode state.
         self._target = np.zeros((n, p, 3))
@@ -190,6 +207,7 @@ class TangramEnv(EnvBase):
         self._target_ids = torch.full((n, self.view.size, self.view.size), -1, dtype=torch.int8)
         self._silhouette = torch.zeros((n, self.view.size, self.view.size), dtype=torch.uint8)
         self.next_piece = np.zeros(n, dtype=np.int64)
+        self._last_placed = np.full(n, -1, dtype=np.int64)  # the piece a push moves
         self.end_piece = np.full(n, p, dtype=np.int64)
         self.target_source = np.zeros(n, dtype=np.int64)
         self.target_figure = np.full(n, -1, dtype=np.int64)
@@ -220,12 +238,14 @@ class TangramEnv(EnvBase):
             **{k: flag() for k in ROBOT_FAILURES},
             shape=bs,
         )
-        self.observation_spec = Composite(
-            observation=Bounded(0, 255, shape=(n, 2, s, s), dtype=torch.uint8),
-            info=info,
-            shape=bs,
-        )
-        self.action_spec = MultiCategorical(list(self.grid.nvec), shape=(n, 3), dtype=torch.int64)
+        obs = {"observation": Bounded(0, 255, shape=(n, 2, s, s), dtype=torch.uint8)}
+        nvec = list(self.grid.nvec)
+        if self.free_order:
+            nvec = [p, *nvec]
+            obs["remaining"] = Categorical(2, shape=(n, p), dtype=torch.bool)
+            obs["action_mask"] = Categorical(2, shape=(n, sum(nvec)), dtype=torch.bool)
+        self.observation_spec = Composite(**obs, info=info, shape=bs)
+        self.action_spec = MultiCategorical(nvec, shape=(n, len(nvec)), dtype=torch.int64)
         self.reward_spec = Unbounded(shape=(n, 1), dtype=torch.float32)
         self.full_done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=bs)
 
@@ -306,46 +326,110 @@ class TangramEnv(EnvBase):
         pre = [(np.flatnonzero(k > j), tasks.poses[k > j, j], mirrored[k > j, j]) for j in range(self.num_pieces)]
         self._worlds.reset(rows, [(rows[sub], poses, mirrored) for sub, poses, mirrored in pre])
         self.next_piece[rows] = k
+        self._last_placed[rows] = k - 1
         self.end_piece[rows] = np.where(horizon > 0, np.minimum(k + horizon, self.num_pieces), self.num_pieces)
         self._done[rows] = False
 
     # ------------------------------------------------------------------ step
     def _check_action(self, action: torch.Tensor) -> np.ndarray:
         n = self.cfg.num_worlds
-        if action.shape != (n, 3):
-            raise ValueError(f"action must have shape ({n}, 3), got {tuple(action.shape)}")
+        names = ("piece", "x", "y", "θ") if self.free_order else ("x", "y", "θ")
+        if action.shape != (n, len(names)):
+            what = "(piece, x, y, θ)" if self.free_order else "(x, y, θ)"
+            raise ValueError(f"action must have shape ({n}, {len(names)}) {what}, got {tuple(action.shape)}")
         if action.dtype not in (torch.int64, torch.int32, torch.int16, torch.uint8):
             raise TypeError(f"action must be an integer tensor of grid indices, got {action.dtype}")
         a = action.cpu().numpy().astype(np.int64)
-        hi = np.array(self.grid.nvec)
+        hi = np.array([self.num_pieces, *self.grid.nvec] if self.free_order else self.grid.nvec)
         bad = (a < 0) | (a >= hi)
         if bad.any():
             r, c = np.argwhere(bad)[0]
-            raise ValueError(f"action out of range: world {r} component {'xyθ'[c]} = {a[r, c]}, valid 0..{hi[c] - 1}")
+            raise ValueError(f"action out of range: world {r} component {names[c]} = {a[r, c]}, valid 0..{hi[c] - 1}")
         return a
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         a = self._check_action(tensordict.get("action"))
         piece = self._upcoming()
+        if self.free_order:
+            piece = self._chosen(a[:, 0])
+            a = a[:, 1:]
+        chosen = piece if self.free_order else None
         if not self.grid.flip:
-            return self.place_poses(self.piece_set.to_centroid(piece, self.grid.to_pose(a)))
+            return self.place_poses(self.piece_set.to_centroid(piece, self.grid.to_pose(a)), piece=chosen)
         # Turned over, a piece that is not chiral is the same set of poses: only chiral ones flip.
         mirrored = self.grid.mirrored(a) & self._chiral[piece]
-        return self.place_poses(self.piece_set.to_centroid(piece, self.grid.to_pose(a), mirrored), mirrored)
+        return self.place_poses(
+            self.piece_set.to_centroid(piece, self.grid.to_pose(a), mirrored), mirrored, piece=chosen
+        )
+
+    def choosable(self) -> np.ndarray:
+        """(N, P) bool: the pieces a free-order action may choose now, the first unplaced piece of
+        each twin group (all False in a finished world)."""
+        placed = self._worlds.placed
+        p = self.num_pieces
+        # Twins go down in set order, so a group's first unplaced member is its lowest index.
+        earlier_twin_unplaced = np.zeros_like(placed)
+        for i in range(p):
+            same = np.flatnonzero(self._twin_rep[:i] == self._twin_rep[i])
+            if len(same):
+                earlier_twin_unplaced[:, i] = (~placed[:, same]).any(1)
+        live = (self.next_piece < self.end_piece)[:, None]
+        return ~placed & ~earlier_twin_unplaced & live
+
+    def _chosen(self, piece: np.ndarray) -> np.ndarray:
+        """The free-order pieces of an action, checked against :meth:`choosable` (finished worlds'
+        choices are ignored: they place nothing)."""
+        ok = self.choosable()
+        live = self.next_piece < self.end_piece
+        rows = np.arange(self.cfg.num_worlds)
+        bad = live & ~ok[rows, piece]
+        if bad.any():
+            r = int(np.flatnonzero(bad)[0])
+            k = int(piece[r])
+            name = self.piece_set.names[k]
+            if self._worlds.placed[r, k]:
+                why = "it is already placed"
+            else:
+                first = int(np.flatnonzero((self._twin_rep == self._twin_rep[k]) & ~self._worlds.placed[r])[0])
+                why = f"twins are one choice: its twin {first} ({self.piece_set.names[first]}) goes first"
+            allowed = np.flatnonzero(ok[r]).tolist()
+            raise ValueError(f"action on a masked piece: world {r} chose piece {k} ({name}), {why}; allowed {allowed}")
+        return np.where(live, piece, self._upcoming())
 
     def _upcoming(self) -> np.ndarray:
-        """(N,) the piece each world places next (the last one once its episode is over)."""
+        """(N,) the piece each world places next in fixed order (the last one once its episode is over)."""
         return np.minimum(self.next_piece, self.num_pieces - 1)
 
-    def place_poses(self, poses: np.ndarray, mirrored: np.ndarray | None = None) -> TensorDictBase:
-        """Place the next piece of every world at continuous centroid poses (N, 3), turned over where
-        ``mirrored`` (N,) bool; return the step's outputs.
+    def _piece_arg(self, piece: np.ndarray | None, what: str) -> np.ndarray:
+        """The piece of every world for ``what``: given (free order), or the set's next one (fixed
+        order, where a given piece must be that one in every world still assembling)."""
+        if piece is None:
+            if self.free_order:
+                raise ValueError(f"{what} needs the piece of every world with env.order: free")
+            return self._upcoming()
+        piece = np.asarray(piece, dtype=np.int64).reshape(self.cfg.num_worlds)
+        if ((piece < 0) | (piece >= self.num_pieces)).any():
+            raise ValueError(f"{what}: pieces must be in 0..{self.num_pieces - 1}, got {piece.tolist()}")
+        live = self.next_piece < self.end_piece
+        if not self.free_order and (piece != self._upcoming())[live].any():
+            raise ValueError(f"{what}: with env.order: fixed the piece is the set's next one ({self._upcoming()})")
+        return piece
+
+    def place_poses(
+        self, poses: np.ndarray, mirrored: np.ndarray | None = None, piece: np.ndarray | None = None
+    ) -> TensorDictBase:
+        """Place a piece of every world at continuous centroid poses (N, 3), turned over where
+        ``mirrored`` (N,) bool; return the step's outputs. The piece is ``piece`` (N,) (free order
+        needs it; it is not checked against the action mask) or the set's next one.
 
         This is the step without the action grid: the exact oracle and the robot
         placement use it. Worlds whose episode is over are left unchanged.
         """
         if mirrored is not None:
             mirrored = np.asarray(mirrored, dtype=bool).reshape(self.cfg.num_worlds)
+        piece = self._piece_arg(piece, "place_poses").copy()
+        if not self.free_order:
+            piece = self.next_piece.copy()  # past the end in finished worlds, as the info has always said
         n = self.cfg.num_worlds
         poses = np.asarray(poses, dtype=np.float64).reshape(n, 3)
         if not np.isfinite(poses).all():
@@ -356,7 +440,6 @@ class TangramEnv(EnvBase):
             eps = torch.randn((n, 3), generator=self.rng, dtype=torch.float64).numpy()
             poses = poses + eps * [noise.action_xy, noise.action_xy, noise.action_theta]
         rows = np.flatnonzero(self.next_piece < self.end_piece)
-        piece = self.next_piece.copy()
         physics = np.zeros(n, dtype=bool)
         penetration = np.zeros(n)
         failures = {k: np.zeros(n, dtype=bool) for k in ROBOT_FAILURES}
@@ -369,6 +452,7 @@ class TangramEnv(EnvBase):
                 for k in ROBOT_FAILURES:
                     failures[k][rows] = getattr(res.robot, k)
             self.next_piece[rows] += 1
+            self._last_placed[rows] = piece[rows]
         return self._observe(fresh=False, placement=_Placement(piece, rows, commanded, physics, penetration, failures))
 
     def perturb(self, rows: np.ndarray, distance: float) -> None:
@@ -378,11 +462,11 @@ class TangramEnv(EnvBase):
         The next observation shows the result; the episode goes on from there.
         """
         rows = np.asarray(rows, dtype=np.int64)
-        rows = rows[self.next_piece[rows] > 0]
+        rows = rows[self._last_placed[rows] >= 0]
         if len(rows) == 0:
             return
         angle = torch.rand(len(rows), generator=self.rng, dtype=torch.float64).numpy() * 2 * math.pi
-        self._worlds.push(rows, self.next_piece[rows] - 1, np.c_[np.cos(angle), np.sin(angle)] * distance)
+        self._worlds.push(rows, self._last_placed[rows], np.c_[np.cos(angle), np.sin(angle)] * distance)
 
     def current(self) -> TensorDictBase:
         """Observation and info of every world as they are now (no step, no reward)."""
@@ -390,23 +474,27 @@ class TangramEnv(EnvBase):
         return out.exclude("done", "terminated", "truncated")
 
     # ------------------------------------------------------------------ privileged and tooling
-    def oracle_targets(self) -> OracleTargets:
-        """The next piece of every world and its exact target pose: the solution, for oracles and tests."""
-        piece = self._upcoming()
+    def oracle_targets(self, piece: np.ndarray | None = None) -> OracleTargets:
+        """The next piece of every world (``piece`` (N,), needed with free order) and its exact
+        target pose: the solution, for oracles and tests."""
+        piece = self._piece_arg(piece, "oracle_targets")
         rows = np.arange(self.cfg.num_worlds)
         return OracleTargets(piece, self._target[rows, piece].copy(), self._mirrored[rows, piece].copy())
 
-    def counterfactual(self, rows: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """What placing every world's next piece at each grid action would earn, if it touched
-        nothing, and how much of that footprint would lie on placed pieces: (N, T, Y, X) coverage
-        and overlap in [0, 1], T = ``grid.norient`` (see :mod:`mrchaos.env.dense`; with the flip, the
-        turned-over orientations follow the face-up ones). ``rows`` asks for those worlds only
-        (their rows, in that order). Privileged, like :meth:`oracle_targets`."""
+    def counterfactual(
+        self, rows: np.ndarray | None = None, piece: np.ndarray | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """What placing every world's next piece (``piece`` (N,), needed with free order) at each
+        grid action would earn, if it touched nothing, and how much of that footprint would lie on
+        placed pieces: (N, T, Y, X) coverage and overlap in [0, 1], T = ``grid.norient`` (see
+        :mod:`mrchaos.env.dense`; with the flip, the turned-over orientations follow the face-up
+        ones). ``rows`` asks for those worlds only (their rows, in that order). Privileged, like
+        :meth:`oracle_targets`."""
         if self._counterfactual is None:
             self._counterfactual = CounterfactualGrid(self.piece_set, self.grid)
         r = np.arange(self.cfg.num_worlds) if rows is None else np.asarray(rows)
         return self._counterfactual.coverage(
-            self._upcoming()[r],
+            self._piece_arg(piece, "counterfactual")[r],
             self._target[r],
             self._worlds.footprint[r],
             self._worlds.placed[r],
@@ -515,6 +603,7 @@ class TangramEnv(EnvBase):
         done = self._done.clone()
         out = TensorDict(
             observation=torch.stack([self._silhouette, view], dim=1),
+            **(self._free_order_keys() if self.free_order else {}),
             info=info,
             done=done,
             terminated=done.clone(),
@@ -524,6 +613,17 @@ class TangramEnv(EnvBase):
         if not fresh:
             out.set("reward", terms["reward"].float()[:, None])
         return out
+
+    def _free_order_keys(self) -> dict[str, torch.Tensor]:
+        """``remaining`` and ``action_mask`` of free order (see the module docstring); the action
+        spec's mask follows, so that ``rand_action`` draws allowed pieces."""
+        n = self.cfg.num_worlds
+        pieces = self.choosable()
+        pieces[~pieces.any(1)] = True  # a finished world places nothing: nothing to mask
+        grid = np.ones((n, sum(self.grid.nvec)), dtype=bool)
+        mask = torch.as_tensor(np.concatenate([pieces, grid], 1))
+        self.action_spec.update_mask(mask)
+        return {"remaining": torch.as_tensor(~self._worlds.placed), "action_mask": mask}
 
     def _info(
         self,

@@ -52,9 +52,10 @@ SHIPPED = {
 }
 
 
-#: The env config groups a policy's weights depend on (its input image and its action head);
+#: The env config groups a policy's weights depend on (its input image, its action head and the
+#: assembly order it acts in);
 #: an evaluation env takes them from the checkpoint.
-POLICY_ENV_GROUPS = ("view", "grid", "observation")
+POLICY_ENV_GROUPS = ("view", "grid", "observation", "order")
 
 FORMAT = 1
 

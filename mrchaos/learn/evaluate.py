@@ -1,7 +1,8 @@
 """Deterministic evaluation: whole episodes on given targets, with the paper's and the strict metrics.
 
 Each world gets one target (a chaos object or a figure) and places all j pieces
-in order with the policy's most likely action (or a baseline). Per episode it
+with the policy's most likely action (or a baseline), in the set's order or, with free order,
+in the order the actor chooses (recorded). Per episode it
 returns Rela and Final (the paper's), IoU and strict Rela (ours), and the final
 view for contact sheets and recordings.
 """
@@ -31,7 +32,8 @@ class EpisodeResults:
     final: np.ndarray
     iou: np.ndarray
     strict_rela: np.ndarray
-    step_coverage: np.ndarray  # (n, j)
+    step_coverage: np.ndarray  # (n, j) the coverage each step's piece reached
+    order: np.ndarray  # (n, j) the piece each step placed (0..j-1 with fixed order)
     silhouettes: np.ndarray  # (n, H, W) uint8
     final_views: np.ndarray  # (n, H, W) uint8
     failures: dict[str, np.ndarray] | None = None  # robot failure counts per episode
@@ -82,7 +84,10 @@ def evaluate(
     n, nw, p = len(targets), env.batch_size[0], env.num_pieces
     if perturb_after is not None and not 0 <= perturb_after < p:
         raise ValueError(f"perturb_after must be in [0, {p - 1}], got {perturb_after}")
-    out: dict[str, list] = {k: [] for k in ("rela", "final", "iou", "strict", "cov", "sil", "view", "fail", "pert")}
+    keys = ("rela", "final", "iou", "strict", "cov", "order", "sil", "view", "fail", "pert")
+    out: dict[str, list] = {k: [] for k in keys}
+    # What an actor reads: the image, and with free order the pieces left and the action mask.
+    inputs = ["observation", *(["remaining", "action_mask"] if env.free_order else [])]
     steps: list[dict] = []
     for start in range(0, n, nw):
         chunk = targets[start : start + nw]
@@ -95,21 +100,24 @@ def evaluate(
         td = env.reset_to(padded, faces)
         silhouettes = td["observation"][:m, 0].numpy().copy()
         cov: list[torch.Tensor] = []
+        order: list[torch.Tensor] = []
         fail = {k: torch.zeros(nw, dtype=torch.int64) for k in ROBOT_FAILURES}
         pert = {}
         for t in range(p):
             action = actor(env, td)
             nxt = env.step(td.set("action", action))["next"]
             cov.append(nxt["info", "step_coverage"][:, 0])
+            order.append(nxt["info", "piece"][:, 0])
             for k in ROBOT_FAILURES:
                 fail[k] += nxt["info", k][:, 0].long()
             if t == perturb_after:
                 pert["final_before"] = nxt["info", "final"][:m, 0].numpy().copy()
-                pert["coverage_before"] = nxt["info", "coverage"][:m, t].numpy().copy()
+                pushed = (torch.arange(m), order[t][:m])  # the piece this step placed
+                pert["coverage_before"] = nxt["info", "coverage"][:m][pushed].numpy().copy()
                 env.perturb(np.arange(nw), perturb_distance)
                 now = env.current()
                 pert["final_after"] = now["info", "final"][:m, 0].numpy().copy()
-                pert["coverage_after"] = now["info", "coverage"][:m, t].numpy().copy()
+                pert["coverage_after"] = now["info", "coverage"][:m][pushed].numpy().copy()
                 nxt = nxt.update(now)
             if on_step is not None:
                 on_step(start, t, nxt)
@@ -124,9 +132,10 @@ def evaluate(
                         "reward": nxt["info", "step_coverage"][:m, 0].numpy().copy(),
                     }
                 )
-            td = TensorDict(observation=nxt["observation"], batch_size=env.batch_size)
+            td = nxt.select(*inputs)
         covs = torch.stack(cov, 1)[:m]
         out["cov"].append(covs.numpy())
+        out["order"].append(torch.stack(order, 1)[:m].numpy())
         out["rela"].append(covs.mean(1).numpy())
         out["final"].append(nxt["info", "final"][:m, 0].numpy())
         out["iou"].append(nxt["info", "iou"][:m, 0].numpy())
@@ -145,6 +154,7 @@ def evaluate(
         iou=cat["iou"],
         strict_rela=cat["strict"],
         step_coverage=cat["cov"],
+        order=cat["order"],
         silhouettes=cat["sil"],
         final_views=cat["view"],
         failures=_merge(out["fail"]),
@@ -190,6 +200,7 @@ def concat_results(parts: list[EpisodeResults]) -> EpisodeResults:
     cov = [
         np.pad(r.step_coverage, ((0, 0), (0, width - r.step_coverage.shape[1])), constant_values=np.nan) for r in parts
     ]
+    order = [np.pad(r.order, ((0, 0), (0, width - r.order.shape[1])), constant_values=-1) for r in parts]
     arrays = {
         k: np.concatenate([getattr(r, k) for r in parts])
         for k in ("rela", "final", "iou", "strict_rela", "silhouettes", "final_views")
@@ -200,6 +211,7 @@ def concat_results(parts: list[EpisodeResults]) -> EpisodeResults:
         iou=arrays["iou"],
         strict_rela=arrays["strict_rela"],
         step_coverage=np.concatenate(cov),
+        order=np.concatenate(order),
         silhouettes=arrays["silhouettes"],
         final_views=arrays["final_views"],
         failures=_merge([r.failures for r in parts]),

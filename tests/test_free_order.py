@@ -1,0 +1,194 @@
+"""Free assembly order (``env.order: free``): the action mask, twins as one choice, the oracle in
+any order, robot placement out of order, dense targets for a chosen piece, and the bench."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from mrchaos.env.oracle import oracle_actions, oracle_poses, random_pieces
+from mrchaos.env.tangram import EnvConfig, TangramEnv
+from mrchaos.learn.evaluate import evaluate
+from mrchaos.tasks.chaos import ChaosConfig, generate
+
+
+def _env(n: int = 4, **kw) -> TangramEnv:
+    return TangramEnv(EnvConfig(num_worlds=n, order="free", **kw), seed=0)
+
+
+def test_fixed_order_keeps_its_specs_and_free_order_adds_the_mask_and_the_pieces_left() -> None:
+    fixed = TangramEnv(EnvConfig(num_worlds=2), seed=0)
+    assert fixed.action_spec.shape == (2, 3)
+    assert set(fixed.observation_spec.keys()) == {"observation", "info"}
+    env = _env()
+    p, (nx, ny, no) = env.num_pieces, env.grid.nvec
+    assert env.action_spec.shape == (4, 4) and env.action_spec.nvec.tolist()[0] == [p, nx, ny, no]
+    td = env.reset()
+    assert td["action_mask"].shape == (4, p + nx + ny + no) and td["action_mask"][:, p:].all()
+    assert td["remaining"].all()
+    check_env_specs(env, seed=0)
+
+
+def test_the_mask_follows_placements_and_a_masked_piece_is_an_error() -> None:
+    env = _env(n=2)
+    td = env.reset()
+    mask = td["action_mask"][:, : env.num_pieces]
+    # Twins are one choice: the second large and the second small triangle wait for their first.
+    assert mask.tolist() == [[True, False, True, True, True, True, False]] * 2
+    square = env.piece_set.index("square")
+    td = env.step(td.set("action", oracle_actions(env, np.array([square, 0]))))["next"]
+    assert td["remaining"][0].tolist() == [True, True, False, True, True, True, True]
+    assert not td["action_mask"][0, square] and td["action_mask"][1, 1]  # world 1 placed piece 0: its twin is next
+    with pytest.raises(ValueError, match="world 0 chose piece 2 \\(square\\), it is already placed"):
+        env.step(td.set("action", oracle_actions(env, np.array([square, 1]))))
+    with pytest.raises(ValueError, match="twins are one choice: its twin 0"):
+        env.step(td.set("action", oracle_actions(env, np.array([1, 1]))))
+    with pytest.raises(ValueError, match="component piece = 7"):
+        env.step(td.set("action", torch.tensor([[7, 0, 0, 0], [0, 0, 0, 0]])))
+    with pytest.raises(ValueError, match="shape \\(2, 4\\) \\(piece, x, y, θ\\)"):
+        env.step(td.set("action", torch.zeros(2, 3, dtype=torch.int64)))
+    # TorchRL's random action follows the mask.
+    for _ in range(20):
+        a = env.rand_action(td.clone())["action"]
+        assert td["action_mask"][torch.arange(2), a[:, 0]].all()
+
+
+def test_the_exact_oracle_assembles_chaos_objects_in_random_orders_and_every_order_is_seen() -> None:
+    n = 24
+    env = _env(n=n)
+    targets, _, mirrored = generate(env.piece_set, n, np.random.default_rng(5), ChaosConfig(), env.view)
+    env.reset_to(targets, mirrored)
+    g = torch.Generator().manual_seed(1)
+    order = []
+    for _ in range(env.num_pieces):
+        piece = random_pieces(env, g)
+        order.append(piece)
+        out = env.place_poses(*oracle_poses(env, piece), piece=piece)
+    order = np.stack(order, 1)
+    assert out["done"].all() and (out["info", "final"] > 0.99).all()
+    # Every piece once; twins in set order; not all worlds in the fixed order.
+    assert (np.sort(order, 1) == np.arange(env.num_pieces)).all()
+    pos = np.argsort(order, 1)
+    assert (pos[:, 0] < pos[:, 1]).all() and (pos[:, 5] < pos[:, 6]).all()
+    assert len({tuple(o) for o in order}) > n // 2
+    # The finished worlds publish no choice (nothing is masked), and their actions are ignored.
+    assert out["action_mask"].all() and not out["remaining"].any()
+
+
+def test_evaluate_records_the_order_and_per_piece_coverage() -> None:
+    from mrchaos.bench.benchmark import chosen_order, piece_coverage
+
+    env = _env(n=8)
+    targets, _, mirrored = generate(env.piece_set, 8, np.random.default_rng(2), ChaosConfig(), env.view)
+    g = torch.Generator().manual_seed(0)
+    res = evaluate(env, targets, lambda e, td: oracle_actions(e, random_pieces(e, g)), mirrored=mirrored)
+    assert (np.sort(res.order, 1) == np.arange(7)).all()
+    by_piece = piece_coverage(res.step_coverage, res.order)
+    assert np.allclose(np.sort(by_piece, 1), np.sort(res.step_coverage, 1))
+    assert (by_piece > 0.6).all()  # the grid oracle covers each slot
+    shares = np.array(chosen_order(res.order))
+    assert np.allclose(shares.sum(1), 1) and np.allclose(shares.sum(0), 1)
+    fixed = TangramEnv(EnvConfig(num_worlds=8), seed=0)
+    res_fixed = evaluate(fixed, targets, lambda e, td: oracle_actions(e), mirrored=mirrored)
+    assert (res_fixed.order == np.arange(7)).all()
+    assert np.array_equal(piece_coverage(res_fixed.step_coverage, res_fixed.order), res_fixed.step_coverage)
+
+
+def test_dense_targets_of_a_chosen_piece_agree_with_the_env_reward() -> None:
+    n = 16
+    env = _env(n=n)
+    env.reset()
+    g = torch.Generator().manual_seed(3)
+    first = np.full(n, env.piece_set.index("medium_triangle"))
+    env.place_poses(*oracle_poses(env, first), piece=first)
+    with pytest.raises(ValueError, match="needs the piece"):
+        env.counterfactual()
+    piece = random_pieces(env, g)
+    cov, overlap = env.counterfactual(piece=piece)
+    a = oracle_actions(env, piece)
+    a[:, 1:3] = (a[:, 1:3] + torch.randint(-2, 3, (n, 2), generator=g)).clamp(0, 50)
+    ar = torch.arange(n)
+    pred = cov[ar, a[:, 3], a[:, 2], a[:, 1]]
+    free = overlap[ar, a[:, 3], a[:, 2], a[:, 1]] == 0
+    out = env.step(TensorDict(action=a, batch_size=[n]))["next"]
+    assert (out["info", "piece"][:, 0].numpy() == piece).all()
+    got = out["info", "step_coverage"][:, 0]
+    ok = free & ~out["info", "physics"][:, 0]
+    assert ok.sum() >= n // 2
+    assert (got[ok] > 0.3).any() and (got[ok] < 0.9).any()  # graded
+    assert (pred[ok] - got[ok]).abs().max() < 0.15 and (pred[ok] - got[ok]).abs().mean() < 0.05
+
+
+def test_fixed_order_rejects_another_piece_in_place_poses() -> None:
+    env = TangramEnv(EnvConfig(num_worlds=2), seed=0)
+    env.reset()
+    with pytest.raises(ValueError, match="with env.order: fixed the piece is the set's next one"):
+        env.place_poses(*oracle_poses(env), piece=np.array([2, 2]))
+    env.place_poses(*oracle_poses(env), piece=np.array([0, 0]))  # the set's next one is fine
+
+
+def _yaw_of(quat: np.ndarray) -> np.ndarray:
+    w, x, y, z = quat.T
+    return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y**2 + z**2))
+
+
+def _spaced_layouts(n: int, rng: np.random.Generator, clearance: float = 0.01) -> np.ndarray:
+    """(n, 7, 3) tangram poses in the view, every two pieces at least ``clearance`` apart: where a
+    placement lands is then the robot's doing alone (a piece set down touching another is nudged
+    by the contact, in either order)."""
+    import shapely
+
+    from mrchaos.core.geometry import rigid_transform
+    from mrchaos.figures.pieces import get_piece_set
+
+    ps = get_piece_set("tangram7")
+    out = np.zeros((n, len(ps), 3))
+    for w in range(n):
+        placed: list = []
+        for k, piece in enumerate(ps.pieces):
+            while True:
+                pose = np.r_[rng.uniform(-0.09, 0.09, 2), rng.uniform(-math.pi, math.pi)]
+                poly = shapely.Polygon(rigid_transform(piece.outline, pose))
+                if all(poly.distance(q) > clearance for q in placed):
+                    break
+            placed.append(poly)
+            out[w, k] = pose
+    return out
+
+
+@pytest.mark.slow
+def test_the_robot_places_pieces_chosen_out_of_order_within_2mm_and_2deg() -> None:
+    n = 20
+    env = _env(n=n, placement="robot")
+    env.reset_to(_spaced_layouts(n, np.random.default_rng(11)))
+    g = torch.Generator().manual_seed(4)
+    worlds, rows = env.worlds, np.arange(n)
+    worst_mm = worst_deg = 0.0
+    orders = []
+    for _ in range(env.num_pieces):
+        piece = random_pieces(env, g)
+        orders.append(piece)
+        pose, _ = oracle_poses(env, piece)
+        out = env.place_poses(pose, piece=piece)
+        for k in ("unreachable", "missed", "dropped", "collision"):
+            assert not out["info", k].any(), k
+        worlds.batch.forward()
+        bodies = np.array([worlds.model.body(env.piece_set.names[i]).id for i in piece])
+        xy = worlds.batch.bind("xpos")[rows, bodies, :2]
+        yaw = _yaw_of(worlds.batch.bind("xquat")[rows, bodies])
+        period = np.array([env.piece_set.pieces[i].symmetry_period for i in piece])
+        err_mm = 1000 * np.linalg.norm(xy - pose[:, :2], axis=1)
+        gap = yaw - pose[:, 2]
+        err_deg = np.degrees(np.abs((gap + period / 2) % period - period / 2))
+        worst_mm, worst_deg = max(worst_mm, err_mm.max()), max(worst_deg, err_deg.max())
+    assert len({tuple(o) for o in np.stack(orders, 1)}) == n  # 20 different orders
+    assert worst_mm < 2.0 and worst_deg < 2.0, (worst_mm, worst_deg)
+    final = float(out["info", "final"].min())
+    print(f"worst placement error out of order {worst_mm:.2f} mm, {worst_deg:.2f} deg; Final >= {final:.3f}")
+    assert out["done"].all() and (out["info", "final"] > 0.9).all()
+    env.close()
