@@ -1,7 +1,7 @@
 """Ship a trained run as a named package policy: ``python tools/ship_policy.py runs/full mrchaos``.
 
 Keeps what evaluation needs (weights in fp16, policy and env config, layout
-checks, training counters, the run's eval.json) and drops the optimiser and RNG
+checks, training counters, the run's eval.json, a re-ranker's weights) and drops the optimiser and RNG
 state, so the file stays small. Written to ``mrchaos/data/policies/<name>.pt``.
 """
 
@@ -23,6 +23,7 @@ KEEP = (
     "grid",
     "view_extent",
     "model",
+    "ranker",
     "curriculum",
     "iteration",
     "frames",

@@ -42,6 +42,7 @@ from mrchaos.learn.evaluate import (
     policy_actor,
 )
 from mrchaos.learn.planner import Lookahead
+from mrchaos.learn.rerank import reranked_actor
 from mrchaos.tasks.chaos import generate
 from mrchaos.tasks.presets import TaskPreset, get_preset
 
@@ -328,8 +329,16 @@ class Bench:
 
             return uniform
         policy = self.policy_operator(spec, env)
+        assert spec.state is not None  # a checkpoint's spec carries its state
+        try:
+            reranked = reranked_actor(spec.state, policy, env.view)
+        except CheckpointError as e:
+            raise CheckpointError(f"{spec.path}: {e}") from None
+        if reranked is not None:
+            if self.lookahead > 1:
+                raise BenchError(f"{spec.path}: --lookahead plans around a policy's own ranking, not a re-ranker's")
+            return reranked
         if self.lookahead > 1:
-            assert spec.state is not None  # a checkpoint's spec carries its state
             if spec.state["policy"].get("name") != "spatial":
                 raise BenchError(f"{spec.path}: --lookahead needs a spatial policy (one score per grid action)")
             return Lookahead(policy, self.lookahead)

@@ -13,8 +13,9 @@ from mrchaos.cli.guard import run_command
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="mrchaos-train",
-        description="Train a tangram policy: PPO, or supervision "
-        "(algo: bc; BC, dense targets, DAgger, expert iteration).",
+        description="Train a tangram policy: PPO, supervision "
+        "(algo: bc; BC, dense targets, DAgger, expert iteration), or the afterstate re-ranker "
+        "around a trained spatial policy (algo: rerank).",
     )
     ap.add_argument("config", nargs="?", help="YAML experiment (e.g. conf/full.yaml)")
     ap.add_argument("overrides", nargs="*", help="dotted overrides, e.g. optim.lr=1e-4 env.num_worlds=64")
@@ -38,7 +39,7 @@ def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             cfg = load_config(run_dir / "config.yaml", extra)
         if not (run_dir / "checkpoints" / "last.pt").exists():
             raise CheckpointError(f"{run_dir}: no checkpoints/last.pt to resume from")
-        if cfg.algo == "bc":
+        if cfg.algo != "ppo":
             return _supervise(cfg, run_dir, resume=True)
         trainer = Trainer(cfg, run_dir, resume=True)
     else:
@@ -50,7 +51,7 @@ def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             raise ConfigError(
                 f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another name=..."
             )
-        if cfg.algo == "bc":
+        if cfg.algo != "ppo":
             return _supervise(cfg, run_dir)
         trainer = Trainer(cfg, run_dir)
     result = trainer.run()
@@ -68,11 +69,13 @@ def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
 
 def _supervise(cfg, run_dir: Path, resume: bool = False) -> int:
+    """A supervised run (algo: bc) or a re-ranker run (algo: rerank)."""
     from mrchaos.learn.bc import train_bc
+    from mrchaos.learn.rerank import train_rerank
 
-    res = train_bc(cfg, run_dir, resume=resume)
+    res = (train_bc if cfg.algo == "bc" else train_rerank)(cfg, run_dir, resume=resume)
     print(
-        f"{run_dir}: supervised on {res['samples']} labelled steps ({res['what']}), final loss "
+        f"{run_dir}: learnt from {res['samples']} labelled steps ({res['what']}), final loss "
         f"{res['loss']:.3f}; greedy on {res['n']} Random objects: Rela {res['rela']:.3f} "
         f"Final {res['final']:.3f}"
     )

@@ -46,6 +46,10 @@ SHIPPED = {
     "mrchaos-dense": ("mrchaos-dense.pt", "dense counterfactual supervision on chaos (conf/dense.yaml)"),
     "mrchaos-dense-ppo": ("mrchaos-dense-ppo.pt", "PPO on top of mrchaos-dense (conf/dense_ppo.yaml)"),
     "mrchaos-exit": ("mrchaos-exit.pt", "expert iteration on top of mrchaos-dense (conf/exit.yaml)"),
+    "mrchaos-rerank": (
+        "mrchaos-rerank.pt",
+        "mrchaos-exit's top 5 re-ranked by an afterstate network (conf/rerank.yaml)",
+    ),
     "mrchaos-flip": ("mrchaos-flip.pt", "dense supervision and DAgger with the flip (conf/flip_dense.yaml)"),
     "mrchaos-cutlery": ("mrchaos-cutlery.pt", "MRChaos on cutlery (conf/cutlery.yaml)"),
     "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),

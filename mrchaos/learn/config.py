@@ -37,12 +37,19 @@ __all__ = [
     "CheckpointConfig",
     "BCConfig",
     "ExitConfig",
+    "RerankConfig",
     "TrainConfig",
+    "ALGOS",
     "load_config",
     "config_from_dict",
     "upgrade_config_dict",
     "config_to_dict",
 ]
+
+
+#: Training algorithms: PPO (the method), supervision (BC, dense targets, DAgger, expert
+#: iteration) and the afterstate re-ranker around a trained spatial policy.
+ALGOS = ("ppo", "bc", "rerank")
 
 
 class ConfigError(MrchaosError, ValueError):
@@ -274,6 +281,44 @@ class ExitConfig:
 
 
 @dataclass
+class RerankConfig:
+    """The afterstate re-ranker (``algo: rerank``, :mod:`mrchaos.learn.rerank`): a network that picks
+    one of the spatial policy's top-k placements from the whole image, trained on the lookahead
+    planner's judgement of those placements; the policy (``init_from``) stays as it is.
+
+    Attributes:
+        data: expert-iteration runs whose data shards (``data/round_R.pt``) hold the planner's
+            judgement of each state's candidates.
+        held_out: the last shards of ``data`` (by run, then round) kept for the held-out agreement
+            (other chaos objects); 0 measures on the training states alone.
+        k: candidates per step, the policy's top k; the planner of ``data`` must have kept as many.
+        width: the re-ranker's convolution width.
+        epochs: passes over the training states.
+        lr: Adam's learning rate.
+        batch: states per minibatch.
+        temperature: the target over a state's candidates is softmax(IoU / temperature).
+    """
+
+    data: list[str] = field(default_factory=list)
+    held_out: int = 1
+    k: int = 5
+    width: int = 32
+    epochs: int = 3
+    lr: float = 3.0e-4
+    batch: int = 128
+    temperature: float = 0.01
+
+    def __post_init__(self) -> None:
+        if self.k < 2 or self.width < 1 or self.epochs < 0 or self.batch < 1 or self.held_out < 0:
+            raise ValueError(
+                "rerank.k must be >= 2, rerank.width and rerank.batch >= 1, rerank.epochs and "
+                f"rerank.held_out >= 0; got {self.k}, {self.width}, {self.batch}, {self.epochs}, {self.held_out}"
+            )
+        if self.lr <= 0 or self.temperature <= 0:
+            raise ValueError(f"rerank.lr and rerank.temperature must be > 0, got {self.lr} and {self.temperature}")
+
+
+@dataclass
 class TrainConfig:
     """A whole experiment: ``algo`` "ppo" (the method) or "bc" (supervision: BC, dense targets, DAgger,
     expert iteration).
@@ -303,10 +348,11 @@ class TrainConfig:
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     bc: BCConfig = field(default_factory=BCConfig)
     exit: ExitConfig = field(default_factory=ExitConfig)
+    rerank: RerankConfig = field(default_factory=RerankConfig)
 
     def __post_init__(self) -> None:
-        if self.algo not in ("ppo", "bc"):
-            raise ValueError(f"algo must be 'ppo' or 'bc', got {self.algo!r}")
+        if self.algo not in ALGOS:
+            raise ValueError(f"algo must be one of {ALGOS}, got {self.algo!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS}, got {self.precision!r}")
         no_budget = self.collector.total_frames <= 0 and self.collector.max_minutes <= 0

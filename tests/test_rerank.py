@@ -1,0 +1,135 @@
+"""The afterstate re-ranker: footprints drawn where the env puts the piece, a re-ranker that starts
+as the policy, a seconds-long run on a tiny expert-iteration run's data, the bench playing it, and
+its errors."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mrchaos.bench.benchmark import Bench, resolve_policy
+from mrchaos.cli.train import main as train_main
+from mrchaos.env.oracle import oracle_actions
+from mrchaos.env.tangram import EnvConfig, TangramEnv
+from mrchaos.learn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from mrchaos.learn.evaluate import policy_actor
+from mrchaos.learn.rerank import Reranked, candidate_footprints, planner_states, reranked_actor
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY_NET = ["policy.channels=[8,16,16]", "policy.hidden=64", "policy.context=8", "precision=fp32"]
+
+
+def test_a_candidate_footprint_is_where_the_env_puts_the_piece() -> None:
+    env = TangramEnv(EnvConfig(num_worlds=6), seed=3)
+    env.reset()
+    for t in range(3):
+        before = env.current()["observation"][:, 1] > 0
+        a = oracle_actions(env)
+        foot = candidate_footprints(env.piece_set, env.grid, env.view, a[:, None], torch.full((6,), t))[:, 0]
+        after = env.step(env.current().set("action", a))["next"]["observation"][:, 1] > 0
+        new = after & ~before
+        # The same polygon rasterised twice: equal up to the pixels its edges cut.
+        assert (foot ^ new).sum((1, 2)).max() <= 0.08 * new.sum((1, 2)).min()
+
+
+@pytest.fixture(scope="module")
+def exit_run(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("runs")
+    code = train_main(
+        [
+            str(ROOT / "conf" / "exit.yaml"),
+            f"runs_dir={root}",
+            "name=exit",
+            "init_from=null",
+            "bc.epochs=1",
+            "bc.objects=12",
+            "exit.rounds=2",
+            "exit.objects=6",
+            "exit.k=3",
+            "exit.epochs=1",
+            "env.num_worlds=18",
+            "bc.minibatch_size=32",
+            *TINY_NET,
+            "--eval=0",
+        ]
+    )
+    assert code == 0
+    return root / "exit"
+
+
+def test_planner_states_are_whole_episodes_with_their_steps(exit_run: Path) -> None:
+    shards = planner_states(exit_run)
+    assert len(shards) == 2  # the demonstrations have no planner judgement
+    for s in shards:
+        n = len(s["iou"])
+        assert n == 6 * 7 and s["candidates"].shape == (n, 3, 3) and not s["iou"].isnan().any()
+        assert sorted(np.bincount(s["step"].numpy()).tolist()) == [6] * 7
+
+
+def test_a_seconds_long_rerank_run_and_the_bench_plays_it(exit_run: Path, tmp_path: Path) -> None:
+    args = [
+        str(ROOT / "conf" / "rerank.yaml"),
+        f"runs_dir={tmp_path}",
+        f"init_from={exit_run}",
+        f"rerank.data=[{exit_run}]",
+        "rerank.k=3",
+        "rerank.width=8",
+        "rerank.epochs=4",
+        "rerank.lr=3e-3",
+        "rerank.batch=16",
+        "env.num_worlds=20",
+    ]
+    assert train_main(args) == 0
+    run = tmp_path / "rerank"
+    with open(run / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["epoch"]) for r in rows] == [1, 2, 3, 4]
+    assert float(rows[-1]["loss"]) < float(rows[0]["loss"])
+    assert all(0 <= float(r[k]) <= 1 for r in rows for k in ("train_agreement", "held_agreement"))
+    st = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert "ranker" in st and st["config"]["rerank"]["k"] == 3
+    # The same weights as the policy it re-ranks (frozen), and a config that records its network.
+    assert all(
+        torch.equal(v, load_checkpoint(exit_run / "checkpoints" / "last.pt")["model"][k])
+        for k, v in st["model"].items()
+    )
+
+    spec = resolve_policy(str(run))
+    bench = Bench(None, ["Random"], random_objects=4, seed=2, num_worlds=4)
+    env = bench.make_env(spec)
+    actor = bench.actor(spec, env)
+    assert isinstance(actor, Reranked)
+    td = env.reset()
+    cand, scores = actor.scores(env, td)
+    a = actor(env, td)
+    assert torch.equal(a, cand[torch.arange(4), scores.argmax(1)])
+    # With its image path silenced it is the policy itself: the mode is the first candidate.
+    torch.nn.init.zeros_(actor.ranker.head[-1].weight)
+    torch.nn.init.zeros_(actor.ranker.head[-1].bias)
+    assert torch.equal(actor(env, td), policy_actor(actor.policy)(env, td))
+    res = bench.run([spec])
+    assert 0 < res["policies"]["rerank"]["families"]["Random"]["rela"]["mean"] <= 1
+    with pytest.raises(Exception, match="lookahead"):
+        Bench(None, ["Random"], random_objects=4, num_worlds=4, lookahead=2).actor(spec, env)
+
+    # Weights that do not fit are named as such.
+    bad = dict(st, ranker={"prior": torch.ones(())})
+    save_checkpoint(tmp_path / "bad.pt", bad)
+    with pytest.raises(CheckpointError, match="re-ranker weights do not fit"):
+        reranked_actor(load_checkpoint(tmp_path / "bad.pt"), actor.policy, env.view)
+    env.close()
+
+
+def test_rerank_config_errors(tmp_path: Path, capsys) -> None:
+    conf = str(ROOT / "conf" / "rerank.yaml")
+    assert train_main([conf, f"runs_dir={tmp_path}", "init_from=null"]) != 0
+    assert "set init_from" in capsys.readouterr().err
+    assert train_main([conf, f"runs_dir={tmp_path}", "rerank.k=1"]) != 0
+    assert "rerank.k must be >= 2" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert train_main([conf, f"runs_dir={tmp_path}", "name=r2", f"rerank.data=[{tmp_path / 'empty'}]"]) != 0
+    assert "not a run folder" in capsys.readouterr().err
