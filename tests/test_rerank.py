@@ -16,7 +16,8 @@ from mrchaos.cli.train import main as train_main
 from mrchaos.env.oracle import oracle_actions
 from mrchaos.env.tangram import EnvConfig, TangramEnv
 from mrchaos.learn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
-from mrchaos.learn.evaluate import policy_actor
+from mrchaos.learn.evaluate import evaluate, policy_actor
+from mrchaos.learn.planner import Lookahead
 from mrchaos.learn.rerank import Reranked, candidate_footprints, planner_states, reranked_actor
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -113,8 +114,15 @@ def test_a_seconds_long_rerank_run_and_the_bench_plays_it(exit_run: Path, tmp_pa
     assert torch.equal(actor(env, td), policy_actor(actor.policy)(env, td))
     res = bench.run([spec])
     assert 0 < res["policies"]["rerank"]["families"]["Random"]["rela"]["mean"] <= 1
-    with pytest.raises(Exception, match="lookahead"):
-        Bench(None, ["Random"], random_objects=4, num_worlds=4, lookahead=2).actor(spec, env)
+    with pytest.raises(Exception, match="lookahead 4 is more than its 3 candidates"):
+        Bench(None, ["Random"], random_objects=4, num_worlds=4, lookahead=4).actor(spec, env)
+    # The planner around the re-ranked policy: with one candidate, the re-ranked policy itself.
+    _, poses, mirrored, _ = bench.targets["Random"][0]
+    greedy = evaluate(env, poses, actor, mirrored=mirrored)
+    planned = evaluate(env, poses, Lookahead(actor.policy, 1, actor).actor(env, poses, mirrored), mirrored=mirrored)
+    assert np.array_equal(greedy.rela, planned.rela)
+    three = Bench(None, ["Random"], random_objects=4, seed=2, num_worlds=6, lookahead=3).actor(spec, env)
+    assert isinstance(three, Lookahead) and three.reranked is not None
 
     # Weights that do not fit are named as such.
     bad = dict(st, ranker={"prior": torch.ones(())})

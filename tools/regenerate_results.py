@@ -28,8 +28,8 @@ RESULTS = ROOT / "docs" / "results"
 
 #: The Table I policies of the tangram, in the order the README lists them.
 TANGRAM_POLICIES = [
-    "mrchaos-exit", "mrchaos-dense-ppo", "mrchaos-dense", "mrchaos-bc-chaos", "mrchaos", "mrchaos-wo-local",
-    "mrchaos-wo-global", "bc", "mrchaos-paper", "random", "oracle",
+    "mrchaos-rerank", "mrchaos-exit", "mrchaos-dense-ppo", "mrchaos-dense", "mrchaos-bc-chaos", "mrchaos",
+    "mrchaos-wo-local", "mrchaos-wo-global", "bc", "mrchaos-paper", "random", "oracle",
 ]  # fmt: skip
 
 #: Where the mirrored figure set is written (``tools/mirror_figures.py``): under ``runs/``, which is

@@ -335,9 +335,9 @@ class Bench:
         except CheckpointError as e:
             raise CheckpointError(f"{spec.path}: {e}") from None
         if reranked is not None:
-            if self.lookahead > 1:
-                raise BenchError(f"{spec.path}: --lookahead plans around a policy's own ranking, not a re-ranker's")
-            return reranked
+            if self.lookahead > reranked.k:
+                raise BenchError(f"{spec.path}: --lookahead {self.lookahead} is more than its {reranked.k} candidates")
+            return Lookahead(policy, self.lookahead, reranked) if self.lookahead > 1 else reranked
         if self.lookahead > 1:
             if spec.state["policy"].get("name") != "spatial":
                 raise BenchError(f"{spec.path}: --lookahead needs a spatial policy (one score per grid action)")

@@ -19,6 +19,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -27,6 +28,9 @@ from tensordict import TensorDict
 from mrchaos.env.tangram import TangramEnv
 from mrchaos.learn.evaluate import Actor, policy_device
 from mrchaos.learn.policy import GridCategorical, unravel_actions
+
+if TYPE_CHECKING:  # the re-ranker module builds on this one's layer; only its type is needed here
+    from mrchaos.learn.rerank import Reranked
 
 __all__ = ["Lookahead", "PlannerLabels"]
 
@@ -59,12 +63,18 @@ class PlannerLabels:
 
 
 class Lookahead:
-    """Plans whole episodes for a spatial policy (a ``GridCategorical`` over the grid's actions)."""
+    """Plans whole episodes for a spatial policy (a ``GridCategorical`` over the grid's actions).
 
-    def __init__(self, policy, k: int) -> None:
+    With ``reranked`` (a :class:`mrchaos.learn.rerank.Reranked` around the same policy) the
+    candidates are the re-ranker's k best of its own candidates, in its order, and the completions
+    play the re-ranked policy: the planner around the policy as shipped."""
+
+    def __init__(self, policy, k: int, reranked: Reranked | None = None) -> None:
         if k < 1:
             raise ValueError(f"lookahead k must be >= 1, got {k}")
-        self.policy, self.k = policy, k
+        if reranked is not None and k > reranked.k:
+            raise ValueError(f"lookahead k={k} is more than the re-ranker's {reranked.k} candidates")
+        self.policy, self.k, self.reranked = policy, k, reranked
 
     def _dist(self, td: TensorDict) -> GridCategorical:
         with torch.no_grad():
@@ -72,6 +82,17 @@ class Lookahead:
         if not isinstance(dist, GridCategorical):
             raise ValueError("lookahead needs a spatial policy (one score per grid action)")
         return dist
+
+    def _candidates(self, env: TangramEnv, td: TensorDict) -> torch.Tensor:
+        """(N, k, 3) the k best grid actions in the policy's (or the re-ranker's) order, best first."""
+        if self.reranked is not None:
+            return self.reranked.ranked(env, td)[:, : self.k].cpu()
+        dist = self._dist(td)
+        _, y, x = dist.grid_shape
+        return unravel_actions(dist.top_modes(self.k).cpu(), x, y)
+
+    def _greedy(self, env: TangramEnv, td: TensorDict) -> torch.Tensor:
+        return self.reranked(env, td).cpu() if self.reranked is not None else self._dist(td).mode.cpu()
 
     def plan(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None = None) -> np.ndarray:
         """The chosen (x, y, orientation) index of every step of every target: (n, pieces, 3)."""
@@ -104,7 +125,6 @@ class Lookahead:
         if nw < k:
             raise ValueError(f"lookahead k={k} needs at least k worlds, the env has {nw}")
         per = nw // k
-        nx, ny, _ = env.grid.nvec
         chosen = np.zeros((n, p, 3), dtype=np.int64)
         rec: dict[str, list[torch.Tensor]] = {"observation": [], "candidates": [], "iou": [], "step": [], "extra": []}
         for start in range(0, n, per):
@@ -119,22 +139,20 @@ class Lookahead:
                 for s in range(p):
                     if s < t:
                         action = torch.as_tensor(chosen[rows, s])
+                    elif s == t:
+                        # Every copy of a target sees the same state, so the same top k; the
+                        # policy's own order (its mode first), so that k = 1 is the greedy policy.
+                        top = self._candidates(env, td)
+                        action = top[torch.arange(nw), cand]
+                        tried = action
+                        if record:
+                            rec["observation"].append(td["observation"][first].clone())
+                            rec["candidates"].append(top[first])
+                            rec["step"].append(torch.full((m,), t, dtype=torch.int64))
+                            if on_state is not None:
+                                rec["extra"].append(on_state(env, first.numpy()))
                     else:
-                        dist = self._dist(td)
-                        if s == t:
-                            # Every copy of a target sees the same state, so the same top k; the
-                            # policy's own order (its mode first), so that k = 1 is the greedy policy.
-                            top = dist.top_modes(k).cpu()
-                            action = unravel_actions(top.gather(1, cand[:, None]).squeeze(1), nx, ny)
-                            tried = action
-                            if record:
-                                rec["observation"].append(td["observation"][first].clone())
-                                rec["candidates"].append(unravel_actions(top[first], nx, ny))
-                                rec["step"].append(torch.full((m,), t, dtype=torch.int64))
-                                if on_state is not None:
-                                    rec["extra"].append(on_state(env, first.numpy()))
-                        else:
-                            action = dist.mode.cpu()
+                        action = self._greedy(env, td)
                     nxt = env.step(td.set("action", action.to(env.device)))["next"]
                     td = TensorDict(observation=nxt["observation"], batch_size=env.batch_size)
                 iou = nxt["info", "iou"][: m * k, 0].reshape(m, k).cpu()

@@ -46,7 +46,7 @@ from mrchaos.learn.checkpoint import (
     save_checkpoint,
 )
 from mrchaos.learn.config import RerankConfig, TrainConfig, config_to_dict, load_config
-from mrchaos.learn.evaluate import Actor, evaluate, policy_device
+from mrchaos.learn.evaluate import evaluate, policy_device
 from mrchaos.learn.policy import GridCategorical, PolicyConfig, build_actor_critic, unravel_actions
 from mrchaos.tasks.chaos import generate
 
@@ -204,12 +204,19 @@ class Reranked:
             foot = candidate_footprints(env.piece_set, env.grid, env.view, cand, piece).to(device)
             return cand, self.ranker(obs, foot, dist.scores_at(cand))
 
+    def ranked(self, env: TangramEnv, td: TensorDict) -> torch.Tensor:
+        """(N, k, 3) each world's candidates in the re-ranker's order, best first (ties keep the
+        policy's order)."""
+        cand, s = self.scores(env, td)
+        order = torch.sort(s, dim=1, descending=True, stable=True).indices
+        return cand.gather(1, order[..., None].expand_as(cand))
+
     def __call__(self, env: TangramEnv, td: TensorDict) -> torch.Tensor:
         cand, s = self.scores(env, td)
         return cand[torch.arange(len(cand)), s.argmax(1)].to(env.device)
 
 
-def reranked_actor(state: dict, policy, view: View) -> Actor | None:
+def reranked_actor(state: dict, policy, view: View) -> Reranked | None:
     """The re-ranked actor of a checkpoint with ``ranker`` weights around its ``policy`` module (None
     for a checkpoint without them); :class:`CheckpointError` when the weights do not fit."""
     if "ranker" not in state:
