@@ -361,7 +361,8 @@ class Bench:
             pcfg = PolicyConfig(**st["policy"])
             if self.mode_window is not None:
                 pcfg = dataclasses.replace(pcfg, mode_window=self.mode_window)
-            ac = build_actor_critic(pcfg, env.grid, env.view, env.action_spec)
+            pieces = env.num_pieces if env.free_order else 0
+            ac = build_actor_critic(pcfg, env.grid, env.view, env.action_spec, pieces)
             ac.load_state_dict(st["model"])
         except (TypeError, ValueError, RuntimeError, KeyError) as e:
             raise CheckpointError(f"{spec.path}: cannot rebuild its policy ({str(e)[:200]})") from None

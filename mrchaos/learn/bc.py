@@ -205,6 +205,8 @@ class SupervisedRun:
         )
         if ex.rounds and cfg.env.num_worlds < ex.k:
             raise ValueError(f"exit.k={ex.k} candidates need env.num_worlds >= {ex.k}, got {cfg.env.num_worlds}")
+        if cfg.env.order != "fixed":
+            raise ValueError("supervision (algo: bc) labels the set's order; with env.order: free train with algo: ppo")
         self.env = TangramEnv(dataclasses.replace(cfg.env_config(), task=cfg.task.given_targets()), seed=cfg.seed)
         self.ac = build_actor_critic(cfg.policy, self.env.grid, self.env.view, self.env.action_spec).to(self.device)
         self.policy = self.ac.get_policy_operator()

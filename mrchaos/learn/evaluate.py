@@ -57,7 +57,9 @@ def policy_actor(policy) -> Actor:
 
     def act(env: TangramEnv, td: TensorDict) -> torch.Tensor:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            obs = td.select("observation").clone().to(device)
+            # The image, and with free order the pieces left and the action mask.
+            obs = td.select(*(k for k in ("observation", "remaining", "action_mask") if k in td.keys()))
+            obs = obs.clone().to(device)
             return policy(obs)["action"].to(env.device)
 
     return act

@@ -9,6 +9,11 @@ actor and the value head (``ActorValueOperator``).
   (theta, y, x) grid action, read at the grid's positions in the image, so that
   "place here" is learnt the same way at every position; a global context vector
   (FiLM) tells every position what stage of the assembly it is in.
+
+With free order (``env.order: free``, ``build_actor_critic(..., pieces=P)``) both also read the
+pieces left (``remaining``, into the MLP or the FiLM context) and the action mask: the paper
+net gets a piece head, the spatial net one set of orientation channels per piece, and the pieces
+the mask forbids get :data:`MASKED_LOGIT`; actions are (piece, x, y, theta).
 """
 
 from __future__ import annotations
@@ -29,6 +34,9 @@ __all__ = [
     "PolicyConfig",
     "FactorisedCategorical",
     "GridCategorical",
+    "PieceGridCategorical",
+    "MASKED_LOGIT",
+    "mask_pieces",
     "build_actor_critic",
     "compile_networks",
     "count_parameters",
@@ -92,14 +100,23 @@ class PolicyConfig:
 
 
 class FactorisedCategorical(Distribution):
-    """Independent categoricals over x, y and theta; samples are (..., 3) int64 indices."""
+    """Independent categoricals over x, y and theta; samples are (..., 3) int64 indices. With free
+    order (``logits_p``, masked pieces already at :data:`MASKED_LOGIT`) a piece categorical comes
+    first: (..., 4) = (piece, x, y, theta)."""
 
     arg_constraints: dict = {}
     has_enumerate_support = False
 
-    def __init__(self, logits_x: torch.Tensor, logits_y: torch.Tensor, logits_t: torch.Tensor) -> None:
-        self.parts = tuple(Categorical(logits=lg.float()) for lg in (logits_x, logits_y, logits_t))
-        super().__init__(batch_shape=logits_x.shape[:-1], event_shape=torch.Size([3]), validate_args=False)
+    def __init__(
+        self,
+        logits_x: torch.Tensor,
+        logits_y: torch.Tensor,
+        logits_t: torch.Tensor,
+        logits_p: torch.Tensor | None = None,
+    ) -> None:
+        given = (logits_x, logits_y, logits_t) if logits_p is None else (logits_p, logits_x, logits_y, logits_t)
+        self.parts = tuple(Categorical(logits=lg.float()) for lg in given)
+        super().__init__(batch_shape=logits_x.shape[:-1], event_shape=torch.Size([len(given)]), validate_args=False)
 
     @property
     def support(self):
@@ -139,6 +156,19 @@ def _log_prob_entropy(scores: torch.Tensor, flat: torch.Tensor) -> tuple[torch.T
 # by torch.compile when the networks are compiled (compile_networks sets it): in eager mode
 # they cost about a quarter of a PPO step (measured).
 _fused_log_prob_entropy = None
+
+
+#: The logit of a piece a free-order action may not choose: finite, so that its probability is 0
+#: and p log p stays 0 rather than NaN.
+MASKED_LOGIT = -1e9
+
+
+def mask_pieces(logits: torch.Tensor, mask: torch.Tensor, per_piece: int = 1) -> torch.Tensor:
+    """``logits`` (B, P * per_piece, ...) with the channels of pieces that ``mask`` (B, P) bool
+    forbids set to :data:`MASKED_LOGIT` (in fp32)."""
+    b, p = mask.shape
+    keep = mask.repeat_interleave(per_piece, 1).reshape(b, p * per_piece, *([1] * (logits.dim() - 2)))
+    return torch.where(keep, logits.float(), torch.full((), MASKED_LOGIT))
 
 
 def unravel_actions(flat: torch.Tensor, nx: int, ny: int) -> torch.Tensor:
@@ -257,6 +287,34 @@ class GridCategorical(Distribution):
         return self.mode
 
 
+class PieceGridCategorical(GridCategorical):
+    """Free order's :class:`GridCategorical`: the logits (..., P * T, Y, X) hold one set of T
+    orientation channels per piece (masked pieces already at :data:`MASKED_LOGIT`), and actions
+    are (..., 4) = (piece, x, y, theta); channel c is piece c // T, orientation c % T."""
+
+    def __init__(self, logits: torch.Tensor, window: int = 1, pieces: int = 1) -> None:
+        super().__init__(logits, window)
+        self.pieces = pieces
+        self.norient = logits.shape[-3] // pieces
+        self._event_shape = torch.Size([4])
+
+    def _unravel(self, flat: torch.Tensor) -> torch.Tensor:
+        a = super()._unravel(flat)
+        c = a[..., 2]
+        return torch.stack([c // self.norient, a[..., 0], a[..., 1], c % self.norient], -1)
+
+    def _grid(self, value: torch.Tensor) -> torch.Tensor:
+        """(..., 4) free-order actions as (..., 3) (x, y, channel) of the underlying grid."""
+        value = value.long()
+        return torch.stack([value[..., 1], value[..., 2], value[..., 0] * self.norient + value[..., 3]], -1)
+
+    def log_prob(self, value: torch.Tensor) -> torch.Tensor:
+        return super().log_prob(self._grid(value))
+
+    def scores_at(self, actions: torch.Tensor) -> torch.Tensor:
+        return super().scores_at(self._grid(actions))
+
+
 def _prep(obs: torch.Tensor, pool: int) -> torch.Tensor:
     # Straight to the autocast dtype (bf16 holds 0 and 255 exactly): no fp32 copy of the batch.
     kind = obs.device.type
@@ -268,10 +326,11 @@ def _prep(obs: torch.Tensor, pool: int) -> torch.Tensor:
 class PaperTrunk(nn.Module):
     """3 conv layers (8/4, 4/2, 3/1 kernels/strides, as the reference CNN) and a 512-unit MLP layer."""
 
-    def __init__(self, cfg: PolicyConfig, size: int) -> None:
+    def __init__(self, cfg: PolicyConfig, size: int, pieces: int = 0) -> None:
         super().__init__()
         c1, c2, c3 = cfg.channels
         self.pool = cfg.pool
+        self.pieces = pieces
         self.conv = nn.Sequential(
             nn.Conv2d(2, c1, 8, stride=4),
             nn.ReLU(),
@@ -283,21 +342,35 @@ class PaperTrunk(nn.Module):
         )
         with torch.no_grad():
             n = self.conv(torch.zeros(1, 2, size // cfg.pool, size // cfg.pool)).shape[-1]
-        self.fc = nn.Sequential(nn.Linear(n, cfg.hidden), nn.ReLU())
+        # With free order the pieces left join the image features.
+        self.fc = nn.Sequential(nn.Linear(n + pieces, cfg.hidden), nn.ReLU())
 
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: torch.Tensor, remaining: torch.Tensor | None = None) -> torch.Tensor:
         lead = obs.shape[:-3]
-        x = _prep(obs.reshape(-1, *obs.shape[-3:]), self.pool)
-        return self.fc(self.conv(x)).reshape(*lead, -1)
+        x = self.conv(_prep(obs.reshape(-1, *obs.shape[-3:]), self.pool))
+        if self.pieces:
+            assert remaining is not None  # free order's modules read it (build_actor_critic)
+            x = torch.cat([x, remaining.reshape(-1, self.pieces).to(x.dtype)], -1)
+        return self.fc(x).reshape(*lead, -1)
 
 
 class PaperHeads(nn.Module):
-    def __init__(self, hidden: int, grid: ActionGrid) -> None:
+    """Linear heads for x, y and theta, and with free order for the piece (masked)."""
+
+    def __init__(self, hidden: int, grid: ActionGrid, pieces: int = 0) -> None:
         super().__init__()
         self.x, self.y, self.t = nn.Linear(hidden, grid.nx), nn.Linear(hidden, grid.ny), nn.Linear(hidden, grid.norient)
+        self.pieces = pieces
+        self.p = nn.Linear(hidden, pieces) if pieces else None
 
-    def forward(self, h: torch.Tensor):
-        return self.x(h), self.y(h), self.t(h)
+    def forward(self, h: torch.Tensor, action_mask: torch.Tensor | None = None):
+        if self.p is None:
+            return self.x(h), self.y(h), self.t(h)
+        assert action_mask is not None  # free order's modules read it (build_actor_critic)
+        lead = h.shape[:-1]
+        mask = action_mask.reshape(-1, action_mask.shape[-1])[:, : self.pieces]
+        piece = mask_pieces(self.p(h).reshape(-1, self.pieces), mask).reshape(*lead, self.pieces)
+        return self.x(h), self.y(h), self.t(h), piece
 
 
 class SpatialTrunk(nn.Module):
@@ -309,10 +382,11 @@ class SpatialTrunk(nn.Module):
     (``PolicyConfig.context``) about 13 cm.
     """
 
-    def __init__(self, cfg: PolicyConfig, size: int) -> None:
+    def __init__(self, cfg: PolicyConfig, size: int, pieces: int = 0) -> None:
         super().__init__()
         c1, c2, c3 = cfg.channels
         self.pool = cfg.pool
+        self.pieces = pieces
         patch = max(1, 4 // cfg.pool)
         self.enc = nn.Sequential(
             nn.Conv2d(2, c1, patch, stride=patch),
@@ -338,13 +412,14 @@ class SpatialTrunk(nn.Module):
             assert isinstance(up, nn.Conv2d)
             nn.init.zeros_(up.weight)
             nn.init.zeros_(up.bias)  # type: ignore[arg-type]  # Conv2d has a bias unless told otherwise
-        self.ctx = nn.Sequential(nn.Linear(2 * c3, cfg.hidden), nn.ReLU())
+        # With free order the pieces left join the pooled features: every position's FiLM knows them.
+        self.ctx = nn.Sequential(nn.Linear(2 * c3 + pieces, cfg.hidden), nn.ReLU())
         self.film = nn.Linear(cfg.hidden, 2 * c3)
         self.out_channels = c3
         self.cells = size // cfg.pool // patch  # feature cells across the image
         self.hidden = cfg.hidden
 
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, obs: torch.Tensor, remaining: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         lead = obs.shape[:-3]
         # channels_last halves the cost of these small convolutions on CPU (measured).
         x = _prep(obs.reshape(-1, *obs.shape[-3:]), self.pool).contiguous(memory_format=torch.channels_last)
@@ -356,7 +431,11 @@ class SpatialTrunk(nn.Module):
             for block in blocks:
                 h = F.relu(h + block(h))
             f = F.relu(f + F.interpolate(self.context["up"](h), size=f.shape[-2:], mode="nearest"))
-        g = self.ctx(torch.cat([f.mean((-2, -1)), f.amax((-2, -1))], -1))
+        pooled = [f.mean((-2, -1)), f.amax((-2, -1))]
+        if self.pieces:
+            assert remaining is not None  # free order's modules read it (build_actor_critic)
+            pooled.append(remaining.reshape(-1, self.pieces).to(f.dtype))
+        g = self.ctx(torch.cat(pooled, -1))
         scale, shift = self.film(g).chunk(2, -1)
         f = F.relu(f * (1 + scale[..., None, None]) + shift[..., None, None])
         return f.reshape(*lead, *f.shape[1:]), g.reshape(*lead, -1)
@@ -384,10 +463,14 @@ class SpatialHead(nn.Module):
     whose backward pass costs a fraction of ``grid_sample``'s on the CPU (measured).
     """
 
-    def __init__(self, channels: int, cells: int, grid: ActionGrid, view: View, upsample: int = 1) -> None:
+    def __init__(
+        self, channels: int, cells: int, grid: ActionGrid, view: View, upsample: int = 1, pieces: int = 0
+    ) -> None:
         super().__init__()
+        # Free order: one set of orientation channels per piece, the pieces not allowed masked.
+        self.pieces, self.norient = pieces, grid.norient
         # upsample > 1: each trunk cell predicts an upsample x upsample block of logits (pixel shuffle).
-        self.conv = nn.Conv2d(channels, grid.norient * upsample**2, 1)
+        self.conv = nn.Conv2d(channels, grid.norient * max(pieces, 1) * upsample**2, 1)
         self.shuffle = nn.PixelShuffle(upsample) if upsample > 1 else nn.Identity()
         # Normalised image coordinates of the grid (x right, y down, [-1, 1] at the image's edges).
         gx = torch.as_tensor(grid.xs, dtype=torch.float64) / (view.extent / 2)
@@ -397,11 +480,15 @@ class SpatialHead(nn.Module):
         self.register_buffer("wx", bilinear_matrix(gx, n), persistent=False)  # (X, n)
         self.register_buffer("wy", bilinear_matrix(gy, n), persistent=False)  # (Y, n)
 
-    def forward(self, f: torch.Tensor) -> torch.Tensor:
+    def forward(self, f: torch.Tensor, action_mask: torch.Tensor | None = None) -> torch.Tensor:
         lead = f.shape[:-3]
         f = f.reshape(-1, *f.shape[-3:])
         logits = self.shuffle(self.conv(f))  # (B, T, n, n)
         out = self.wy.to(logits.dtype) @ logits @ self.wx.to(logits.dtype).T  # (B, T, Y, X)
+        if self.pieces:
+            assert action_mask is not None  # free order's modules read it (build_actor_critic)
+            mask = action_mask.reshape(-1, action_mask.shape[-1])[:, : self.pieces]
+            out = mask_pieces(out, mask, self.norient)
         return out.reshape(*lead, *out.shape[1:])
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
@@ -423,21 +510,28 @@ class _Value(nn.Module):
 _NETWORKS = (PaperTrunk, PaperHeads, SpatialTrunk, SpatialHead)
 
 
-def build_actor_critic(cfg: PolicyConfig, grid: ActionGrid, view: View, action_spec=None) -> ActorValueOperator:
+def build_actor_critic(
+    cfg: PolicyConfig, grid: ActionGrid, view: View, action_spec=None, pieces: int = 0
+) -> ActorValueOperator:
     """The actor-critic as an ``ActorValueOperator`` (shared trunk, policy head, value head).
 
     ``get_policy_operator()`` samples ``action`` (and ``action_log_prob``);
-    ``get_value_operator()`` writes ``state_value``.
+    ``get_value_operator()`` writes ``state_value``. ``pieces`` > 0 builds the free-order policy of
+    a set of that many pieces (``env.order: free``): it also reads ``remaining`` and
+    ``action_mask``, and its actions are (piece, x, y, theta).
     """
     size = view.size
+    obs_keys = ["observation", "remaining"] if pieces else ["observation"]
+    mask_keys = ["action_mask"] if pieces else []
     if cfg.name == "paper":
-        common = TensorDictModule(PaperTrunk(cfg, size), in_keys=["observation"], out_keys=["hidden"])
+        common = TensorDictModule(PaperTrunk(cfg, size, pieces), in_keys=obs_keys, out_keys=["hidden"])
+        logit_keys = ["logits_x", "logits_y", "logits_t"] + (["logits_p"] if pieces else [])
         head = TensorDictModule(
-            PaperHeads(cfg.hidden, grid), in_keys=["hidden"], out_keys=["logits_x", "logits_y", "logits_t"]
+            PaperHeads(cfg.hidden, grid, pieces), in_keys=["hidden", *mask_keys], out_keys=logit_keys
         )
         actor = ProbabilisticActor(
             head,
-            in_keys=["logits_x", "logits_y", "logits_t"],
+            in_keys=logit_keys,
             out_keys=["action"],
             spec=action_spec,
             distribution_class=FactorisedCategorical,
@@ -445,20 +539,21 @@ def build_actor_critic(cfg: PolicyConfig, grid: ActionGrid, view: View, action_s
         )
         value = ValueOperator(_Value(cfg.hidden), in_keys=["hidden"])
     else:
-        trunk = SpatialTrunk(cfg, size).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
-        common = TensorDictModule(trunk, in_keys=["observation"], out_keys=["features", "hidden"])
+        trunk = SpatialTrunk(cfg, size, pieces).to(memory_format=torch.channels_last)  # type: ignore[call-overload]
+        common = TensorDictModule(trunk, in_keys=obs_keys, out_keys=["features", "hidden"])
         head = TensorDictModule(
-            SpatialHead(trunk.out_channels, trunk.cells, grid, view, cfg.upsample),
-            in_keys=["features"],
+            SpatialHead(trunk.out_channels, trunk.cells, grid, view, cfg.upsample, pieces),
+            in_keys=["features", *mask_keys],
             out_keys=["logits"],
         )
+        kwargs: dict = {"window": cfg.mode_window} | ({"pieces": pieces} if pieces else {})
         actor = ProbabilisticActor(
             head,
             in_keys=["logits"],
             out_keys=["action"],
             spec=action_spec,
-            distribution_class=GridCategorical,
-            distribution_kwargs={"window": cfg.mode_window},
+            distribution_class=PieceGridCategorical if pieces else GridCategorical,
+            distribution_kwargs=kwargs,
             return_log_prob=True,
         )
         value = ValueOperator(_Value(cfg.hidden), in_keys=["hidden"])

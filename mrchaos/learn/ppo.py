@@ -100,7 +100,9 @@ class Trainer:
         self.curriculum: CurriculumTransform = self.env.transform
         base: TangramEnv = self.env.base_env
         self.base = base
-        self.actor_critic = build_actor_critic(cfg.policy, base.grid, base.view, base.action_spec).to(self.device)
+        pieces = base.num_pieces if base.free_order else 0  # free order: the policy chooses the piece too
+        self.actor_critic = build_actor_critic(cfg.policy, base.grid, base.view, base.action_spec, pieces)
+        self.actor_critic = self.actor_critic.to(self.device)
         if cfg.init_from and not resume:
             self._initialise(cfg.init_from)
         prepare_weights(cfg, self.actor_critic)
@@ -263,7 +265,7 @@ class Trainer:
             rerun.log_worlds(
                 self.iteration,
                 data["observation"][:k, -1].cpu().numpy(),
-                data["action"][:k, -1].cpu().numpy(),
+                data["action"][:k, -1, -3:].cpu().numpy(),  # (x, y, theta): free order's piece comes first
                 data["next", "reward"][:k, -1, 0].cpu().numpy(),
                 (self.base.grid.xs, self.base.grid.ys),
                 self.base.view.extent,
@@ -278,7 +280,8 @@ class Trainer:
             self.advantage(data)
         self.buffer.empty()
         # Only what the loss reads: the next observations alone would double every minibatch's copy.
-        self.buffer.extend(data.select(*TRAIN_KEYS).reshape(-1))
+        # (With free order the policy also reads the pieces left and the action mask.)
+        self.buffer.extend(data.select(*dict.fromkeys([*TRAIN_KEYS, *self.policy.in_keys])).reshape(-1))
         sums = dict.fromkeys(LOSS_KEYS, 0.0)
         n_mb = max(1, cfg.collector.frames_per_batch // cfg.loss.minibatch_size)
         for _ in range(cfg.loss.epochs):
@@ -310,7 +313,7 @@ class Trainer:
         need[..., -1, :] = True
         need = need[..., 0]
         with autocast(self.precision, self.device):
-            nxt[need] = self.value(data["next"][need].select("observation"))["state_value"].float()
+            nxt[need] = self.value(data["next"][need].select(*self.value.in_keys))["state_value"].float()
         data.set(("next", "state_value"), nxt)
 
     def curriculum_step(self, reward: float) -> str | None:

@@ -242,6 +242,8 @@ class RerankRun:
             raise ValueError("algo: rerank re-ranks a trained spatial policy: set init_from")
         if cfg.policy.name != "spatial":
             raise ValueError("algo: rerank needs the spatial policy (the candidates are its top k)")
+        if cfg.env.order != "fixed":
+            raise ValueError("algo: rerank re-ranks placements in the set's order (env.order: fixed)")
         if not rc.data:
             raise ValueError("rerank.data must name the expert-iteration runs whose planner data it learns from")
         # The network is the initial policy's: its own config, whatever the file says.
