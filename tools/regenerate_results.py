@@ -52,8 +52,8 @@ TABLES: dict[str, list[str]] = {
                 "--policy", "mrchaos-bc-chaos", "--policy", "mrchaos"],
     # docs/training.md: the lookahead planner around the shipped policies (not the paper's protocol).
     "lookahead3": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--lookahead", "3"]
-    + [a for p in ("mrchaos-exit", "mrchaos-dense-ppo", "mrchaos-dense", "mrchaos-bc-chaos", "mrchaos")
-       for a in ("--policy", p)],
+    + [a for p in ("mrchaos-rerank", "mrchaos-exit", "mrchaos-dense-ppo", "mrchaos-dense", "mrchaos-bc-chaos",
+                   "mrchaos") for a in ("--policy", p)],
     # docs/benchmark.md: the other tasks, their authored goals and 200 chaos objects.
     "cutlery": ["--task", "cutlery", "--policy", "mrchaos-cutlery", "--policy", "oracle", "--policy", "random"],
     "soda": ["--task", "soda", "--policy", "mrchaos-soda", "--policy", "oracle", "--policy", "random"],

@@ -491,7 +491,7 @@ class Bench:
 def piece_coverage(step_coverage: np.ndarray, order: np.ndarray) -> np.ndarray:
     """(n, P) each piece's coverage when placed, from each step's coverage and the piece it placed
     (NaN where an episode has no such piece; the same array with fixed order)."""
-    out = np.full(step_coverage.shape, np.nan)
+    out = np.full(step_coverage.shape, np.nan, dtype=step_coverage.dtype)  # the same sums as before free order
     ep, step = np.nonzero(order >= 0)
     out[ep, order[ep, step]] = step_coverage[ep, step]
     return out

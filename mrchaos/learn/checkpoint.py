@@ -50,7 +50,10 @@ SHIPPED = {
         "mrchaos-rerank.pt",
         "mrchaos-exit's top 5 re-ranked by an afterstate network (conf/rerank.yaml)",
     ),
-    "mrchaos-flip": ("mrchaos-flip.pt", "dense supervision and DAgger with the flip (conf/flip_dense.yaml)"),
+    "mrchaos-flip": (
+        "mrchaos-flip.pt",
+        "dense supervision, DAgger and expert iteration with the flip (conf/flip_dense.yaml, then conf/flip_exit.yaml)",
+    ),
     "mrchaos-cutlery": ("mrchaos-cutlery.pt", "MRChaos on cutlery (conf/cutlery.yaml)"),
     "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),
 }
