@@ -47,12 +47,12 @@ def exit_run(tmp_path_factory) -> Path:
             "name=exit",
             "init_from=null",
             "bc.epochs=1",
-            "bc.objects=12",
+            "bc.objects=8",
             "exit.rounds=2",
-            "exit.objects=6",
+            "exit.objects=4",
             "exit.k=3",
             "exit.epochs=1",
-            "env.num_worlds=18",
+            "env.num_worlds=12",
             "bc.minibatch_size=32",
             *TINY_NET,
             "--eval=0",
@@ -67,8 +67,8 @@ def test_planner_states_are_whole_episodes_with_their_steps(exit_run: Path) -> N
     assert len(shards) == 2  # the demonstrations have no planner judgement
     for s in shards:
         n = len(s["iou"])
-        assert n == 6 * 7 and s["candidates"].shape == (n, 3, 3) and not s["iou"].isnan().any()
-        assert sorted(np.bincount(s["step"].numpy()).tolist()) == [6] * 7
+        assert n == 4 * 7 and s["candidates"].shape == (n, 3, 3) and not s["iou"].isnan().any()
+        assert sorted(np.bincount(s["step"].numpy()).tolist()) == [4] * 7
 
 
 def test_a_seconds_long_rerank_run_and_the_bench_plays_it(exit_run: Path, tmp_path: Path) -> None:
