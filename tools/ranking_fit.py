@@ -33,101 +33,22 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from tensordict import TensorDict
-from torch import nn
 
-from mrchaos.core.raster import rasterize
 from mrchaos.env.tangram import TangramEnv
-from mrchaos.learn.bc import SHARD_KEYS, ranking_loss, supervised_loss
+from mrchaos.learn.bc import ranking_loss, supervised_loss
 from mrchaos.learn.checkpoint import checkpoint_path, load_checkpoint
-from mrchaos.learn.config import config_from_dict, load_config
+from mrchaos.learn.config import config_from_dict
 from mrchaos.learn.evaluate import evaluate
 from mrchaos.learn.policy import build_actor_critic, unravel_actions
+from mrchaos.learn.rerank import AfterstateRanker, candidate_footprints, judge, listwise_loss, planner_states
 from mrchaos.tasks.chaos import generate
 
 
 def load_states(run: Path) -> dict[str, torch.Tensor]:
     """The planner-labelled states of a run's shards, with each state's step (piece index)."""
-    cfg = load_config(run / "config.yaml")
-    per_chunk = cfg.env.num_worlds // cfg.exit.k  # targets the planner holds at once
-    shards = [torch.load(p, weights_only=True) for p in sorted((run / "data").glob("round_*.pt"))]
-    out: dict[str, list[torch.Tensor]] = {k: [] for k in (*SHARD_KEYS, "step")}
-    for s in shards:
-        keep = ~s["iou"][:, 0].isnan()
-        if not keep.any():
-            continue
-        n = int(keep.sum())
-        # Rows run (chunk, step, target) with ``per_chunk`` targets a chunk (the last may be short).
-        objects = n // 7
-        step = torch.cat(
-            [torch.arange(7).repeat_interleave(min(per_chunk, objects - c)) for c in range(0, objects, per_chunk)]
-        )
-        for k in SHARD_KEYS:
-            out[k].append(s[k][keep])
-        out["step"].append(step)
-    return {k: torch.cat(v) for k, v in out.items()}
-
-
-def candidate_masks(env: TangramEnv, candidates: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
-    """(S, k, H, W) bool footprint of each candidate placement of the state's piece, drawn in the view."""
-    ps, g = env.piece_set, env.grid
-    s, k = candidates.shape[:2]
-    act = candidates.reshape(-1, 3).numpy()
-    piece = np.repeat(step.numpy(), k)
-    poses = np.zeros((len(act), len(ps), 3))
-    origin = g.to_pose(act)
-    mirrored = g.mirrored(act)
-    poses[np.arange(len(act)), piece] = ps.to_centroid(piece, origin, mirrored)
-    faces = np.zeros((len(act), len(ps)), dtype=bool)
-    faces[np.arange(len(act)), piece] = mirrored
-    visible = np.zeros((len(act), len(ps)), dtype=bool)
-    visible[np.arange(len(act)), piece] = True
-    out = []
-    for i in range(0, len(act), 4096):
-        sl = slice(i, i + 4096)
-        polys = ps.footprints(poses[sl], faces[sl])
-        out.append(rasterize(polys, env.view, visible=visible[sl], parts=ps.raster_parts).ids >= 0)
-    return torch.cat(out).reshape(s, k, *out[0].shape[-2:])
-
-
-class AfterstateRanker(nn.Module):
-    """Scores each candidate from [silhouette, view, candidate footprint] with a CNN that sees the
-    whole image (pooled to 60x60, four stride-2 layers to 4x4 cells, then an MLP over all of
-    them), plus a learnt multiple of the policy's own score."""
-
-    def __init__(self, width: int = 32, size: int = 120) -> None:
-        super().__init__()
-        w = width
-        self.conv = nn.Sequential(
-            nn.Conv2d(3, w, 5, stride=2, padding=2),
-            nn.ReLU(),
-            nn.Conv2d(w, 2 * w, 3, stride=2, padding=1),
-            nn.ReLU(),
-            nn.Conv2d(2 * w, 2 * w, 3, stride=2, padding=1),
-            nn.ReLU(),
-            nn.Conv2d(2 * w, 2 * w, 3, stride=2, padding=1),
-            nn.ReLU(),
-        )
-        cells = -(-size // 32)  # the input is average-pooled by 2 first (4.3 mm pixels)
-        self.head = nn.Sequential(nn.Flatten(), nn.Linear(2 * w * cells * cells, 256), nn.ReLU(), nn.Linear(256, 1))
-        self.prior = nn.Parameter(torch.ones(()))
-
-    def forward(self, obs: torch.Tensor, masks: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
-        b, k = masks.shape[:2]
-        x = torch.cat(
-            [obs[:, None].expand(b, k, 2, *obs.shape[-2:]).float() / 255, masks[:, :, None].float()], 2
-        ).reshape(b * k, 3, *obs.shape[-2:])
-        x = F.avg_pool2d(x, 2)
-        return self.head(self.conv(x)).reshape(b, k) + self.prior * prior
-
-
-def judge(scores: torch.Tensor, iou: torch.Tensor) -> tuple[float, float]:
-    """Agreement (the top-scored candidate reaches the best IoU: ties with the planner's choice
-    count) and mean regret."""
-    pick = scores.argmax(1)
-    regret = iou.max(1).values - iou.gather(1, pick[:, None]).squeeze(1)
-    return float((regret <= 1e-6).float().mean()), float(regret.mean())
+    shards = planner_states(run, extra=("label",))
+    return {k: torch.cat([s[k] for s in shards]) for k in shards[0]}
 
 
 def main() -> None:
@@ -192,7 +113,7 @@ def main() -> None:
     if args.net == "afterstate":
         t0 = time.perf_counter()
         for d in sets.values():
-            d["masks"] = candidate_masks(env, d["candidates"], d["step"])
+            d["masks"] = candidate_footprints(env.piece_set, env.grid, env.view, d["candidates"], d["step"])
         print(f"candidate footprints drawn in {time.perf_counter() - t0:.0f} s")
         ranker = AfterstateRanker(args.width, env.view.size)
         params = list(ranker.parameters())
@@ -218,8 +139,7 @@ def main() -> None:
             else:
                 _, prior = policy_scores(obs, cand)
                 s = ranker(obs, train["masks"][idx], prior)
-                target = torch.softmax(iou / args.temperature, -1)
-                loss = -(target * F.log_softmax(s, -1)).sum(-1).mean()
+                loss = listwise_loss(s, iou, args.temperature).mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -250,7 +170,8 @@ def main() -> None:
                 _, y, x = dist.grid_shape
                 cand = unravel_actions(top, x, y)
                 step = torch.as_tensor(e.next_piece)
-                s = ranker(td["observation"], candidate_masks(e, cand, step), dist.scores_at(cand))
+                foot = candidate_footprints(e.piece_set, e.grid, e.view, cand, step)
+                s = ranker(td["observation"], foot, dist.scores_at(cand))
                 return cand[torch.arange(len(cand)), s.argmax(1)]
 
         res = evaluate(ev, targets, act, mirrored=mirrored)

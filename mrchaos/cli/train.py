@@ -75,7 +75,7 @@ def _supervise(cfg, run_dir: Path, resume: bool = False) -> int:
 
     res = (train_bc if cfg.algo == "bc" else train_rerank)(cfg, run_dir, resume=resume)
     print(
-        f"{run_dir}: learnt from {res['samples']} labelled steps ({res['what']}), final loss "
+        f"{run_dir}: supervised on {res['samples']} labelled steps ({res['what']}), final loss "
         f"{res['loss']:.3f}; greedy on {res['n']} Random objects: Rela {res['rela']:.3f} "
         f"Final {res['final']:.3f}"
     )

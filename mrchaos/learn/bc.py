@@ -29,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 from tensordict import TensorDict
 
 from mrchaos.core.atomic import write_atomic
@@ -41,7 +40,7 @@ from mrchaos.figures.formats import load_figures
 from mrchaos.figures.library import builtin_figures
 from mrchaos.figures.pieces import get_piece_set
 from mrchaos.learn.checkpoint import CheckpointError, checkpoint_path, load_weights, policy_header, save_checkpoint
-from mrchaos.learn.config import TrainConfig, config_to_dict
+from mrchaos.learn.config import TrainConfig, config_to_dict, start_run
 from mrchaos.learn.evaluate import evaluate, evaluate_random, policy_actor
 from mrchaos.learn.planner import Lookahead
 from mrchaos.learn.policy import GridCategorical, build_actor_critic
@@ -187,12 +186,7 @@ class SupervisedRun:
 
     def __init__(self, cfg: TrainConfig, run_dir: Path, resume: bool = False) -> None:
         self.cfg, self.run_dir = cfg, Path(run_dir)
-        self.ckpt = self.run_dir / "checkpoints" / "last.pt"
-        (self.run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
-        if not resume:
-            write_atomic(self.run_dir / "config.yaml", yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-        torch.set_num_threads(cfg.threads)
-        torch.manual_seed(cfg.seed)
+        self.ckpt = start_run(cfg, self.run_dir, resume)
         self.rng = np.random.default_rng(cfg.seed)
         self.dense = cfg.bc.targets == "dense"
         self.device = torch.device(cfg.device)

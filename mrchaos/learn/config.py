@@ -16,8 +16,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import torch
 import yaml
 
+from mrchaos.core.atomic import write_atomic
 from mrchaos.core.errors import MrchaosError
 from mrchaos.env.tangram import EnvConfig
 from mrchaos.learn.policy import PolicyConfig
@@ -44,6 +46,7 @@ __all__ = [
     "config_from_dict",
     "upgrade_config_dict",
     "config_to_dict",
+    "start_run",
 ]
 
 
@@ -624,3 +627,15 @@ def config_to_dict(cfg: Any) -> dict:
     if isinstance(cfg, TrainConfig):
         d["env"].pop("task", None)
     return d
+
+
+def start_run(cfg: TrainConfig, run_dir: Path, resume: bool = False) -> Path:
+    """Open a run folder for an epoch-checkpointed run: ``checkpoints/`` made, the resolved config
+    written as ``config.yaml`` (kept as it is when resuming), torch's threads and seed set from the
+    config; returns the path of ``checkpoints/last.pt``."""
+    (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+    if not resume:
+        write_atomic(run_dir / "config.yaml", yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    return run_dir / "checkpoints" / "last.pt"

@@ -28,7 +28,6 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-import yaml
 from tensordict import TensorDict
 from torch import nn
 
@@ -45,7 +44,7 @@ from mrchaos.learn.checkpoint import (
     policy_header,
     save_checkpoint,
 )
-from mrchaos.learn.config import RerankConfig, TrainConfig, config_to_dict, load_config
+from mrchaos.learn.config import RerankConfig, TrainConfig, config_to_dict, load_config, start_run
 from mrchaos.learn.evaluate import evaluate, policy_device
 from mrchaos.learn.policy import GridCategorical, PolicyConfig, build_actor_critic, unravel_actions
 from mrchaos.tasks.chaos import generate
@@ -136,10 +135,10 @@ def candidate_footprints(
     return torch.cat(out).reshape(s, k, view.size, view.size)
 
 
-def planner_states(run: Path) -> list[dict[str, torch.Tensor]]:
+def planner_states(run: Path, extra: tuple[str, ...] = ()) -> list[dict[str, torch.Tensor]]:
     """The planner-labelled states of an expert-iteration run, one dict per data shard that has
-    them (in round order): ``observation``, ``candidates``, ``iou`` and ``step`` (the piece each
-    state places)."""
+    them (in round order): ``observation``, ``candidates``, ``iou``, ``step`` (the piece each
+    state places) and the shard keys in ``extra`` (e.g. ``label``, the dense targets)."""
     if not (run / "config.yaml").exists():
         raise CheckpointError(f"{run}: not a run folder (no config.yaml)")
     cfg = load_config(run / "config.yaml")
@@ -163,8 +162,8 @@ def planner_states(run: Path) -> list[dict[str, torch.Tensor]]:
         )
         if len(step) != n:
             raise CheckpointError(f"{path}: {n} planned states are not whole episodes of {p} pieces")
-        out.append({"observation": shard["observation"][keep], "candidates": shard["candidates"][keep]})
-        out[-1].update(iou=shard["iou"][keep], step=step)
+        out.append({k: shard[k][keep] for k in ("observation", "candidates", "iou", *extra)})
+        out[-1]["step"] = step
     if not out:
         raise CheckpointError(f"{run / 'data'}: no data shard with planner-labelled states (exit.rounds: 0?)")
     return out
@@ -250,12 +249,7 @@ class RerankRun:
         init = checkpoint_path(cfg.init_from)
         cfg = dataclasses.replace(cfg, policy=PolicyConfig(**load_checkpoint(init)["policy"]))
         self.cfg, self.run_dir = cfg, Path(run_dir)
-        self.ckpt = self.run_dir / "checkpoints" / "last.pt"
-        (self.run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
-        if not resume:
-            write_atomic(self.run_dir / "config.yaml", yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-        torch.set_num_threads(cfg.threads)
-        torch.manual_seed(cfg.seed)
+        self.ckpt = start_run(cfg, self.run_dir, resume)
         self.env = TangramEnv(dataclasses.replace(cfg.env_config(), task=cfg.task.given_targets()), seed=cfg.seed)
         self.ac = build_actor_critic(cfg.policy, self.env.grid, self.env.view, self.env.action_spec)
         load_weights(self.ac, init, self.env)
