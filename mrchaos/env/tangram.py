@@ -64,12 +64,14 @@ from mrchaos.sim.scene import SceneConfig
 from mrchaos.sim.worlds import PhysicsConfig, Worlds
 from mrchaos.tasks.sampler import TargetBatch, TargetSampler, TaskConfig
 
-__all__ = ["EnvConfig", "NoiseConfig", "TangramEnv", "OracleTargets", "ROBOT_FAILURES", "ORDERS"]
+__all__ = ["EnvConfig", "NoiseConfig", "TangramEnv", "OracleTargets", "ROBOT_FAILURES", "ORDERS", "FREE_ORDER_KEYS"]
 
 #: Failure flags of robot placement in the step info (always False with teleport placement).
 ROBOT_FAILURES = ("unreachable", "missed", "dropped", "collision", "flip_failed")
 #: Assembly orders: the set's own, or chosen by the policy at every step.
 ORDERS = ("fixed", "free")
+#: What free order adds to the observation, beside the image: the pieces left and the action mask.
+FREE_ORDER_KEYS = ("remaining", "action_mask")
 #: Where the env's wall-clock time goes (seconds, see :meth:`TangramEnv.timings`).
 TIMERS = ("physics", "images", "reward")
 

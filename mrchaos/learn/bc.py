@@ -45,9 +45,18 @@ from mrchaos.learn.evaluate import evaluate, evaluate_random, policy_actor
 from mrchaos.learn.planner import Lookahead
 from mrchaos.learn.policy import GridCategorical, build_actor_critic
 from mrchaos.learn.precision import autocast
+from mrchaos.learn.rerank import listwise_loss
 from mrchaos.tasks.chaos import generate
 
-__all__ = ["augment", "demonstrations", "supervised_loss", "ranking_loss", "SupervisedRun", "train_bc", "METRIC_FIELDS"]
+__all__ = [
+    "augment",
+    "demonstrations",
+    "supervised_loss",
+    "ranking_loss",
+    "SupervisedRun",
+    "train_bc",
+    "METRIC_FIELDS",
+]
 
 log = logging.getLogger("mrchaos.learn.bc")
 
@@ -161,9 +170,7 @@ def ranking_loss(
     """Per-sample listwise loss: the cross-entropy between softmax(IoU / T) over a state's planner
     candidates (B, k, 3) and the softmax of the policy's mode scores at the same candidates, the
     scores whose argmax is the deterministic action (windowed under a mode window)."""
-    scores = dist.scores_at(candidates)
-    target = torch.softmax(iou / temperature, -1)
-    return -(target * torch.log_softmax(scores, -1)).sum(-1)
+    return listwise_loss(dist.scores_at(candidates), iou, temperature)
 
 
 #: The pieces of a labelled shard; ``candidates`` and ``iou`` hold the planner's judgement (NaN IoU

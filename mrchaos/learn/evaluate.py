@@ -18,7 +18,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from mrchaos.env.tangram import ROBOT_FAILURES, EnvConfig, TangramEnv
+from mrchaos.env.tangram import FREE_ORDER_KEYS, ROBOT_FAILURES, EnvConfig, TangramEnv
 from mrchaos.tasks.chaos import generate
 
 __all__ = ["EpisodeResults", "evaluate", "evaluate_random", "concat_results", "policy_actor", "policy_device"]
@@ -58,8 +58,7 @@ def policy_actor(policy) -> Actor:
     def act(env: TangramEnv, td: TensorDict) -> torch.Tensor:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             # The image, and with free order the pieces left and the action mask.
-            obs = td.select(*(k for k in ("observation", "remaining", "action_mask") if k in td.keys()))
-            obs = obs.clone().to(device)
+            obs = td.select("observation", *FREE_ORDER_KEYS, strict=False).clone().to(device)
             return policy(obs)["action"].to(env.device)
 
     return act
@@ -89,7 +88,7 @@ def evaluate(
     keys = ("rela", "final", "iou", "strict", "cov", "order", "sil", "view", "fail", "pert")
     out: dict[str, list] = {k: [] for k in keys}
     # What an actor reads: the image, and with free order the pieces left and the action mask.
-    inputs = ["observation", *(["remaining", "action_mask"] if env.free_order else [])]
+    inputs = ["observation", *(FREE_ORDER_KEYS if env.free_order else ())]
     steps: list[dict] = []
     for start in range(0, n, nw):
         chunk = targets[start : start + nw]
@@ -166,13 +165,15 @@ def evaluate(
 
 
 def evaluate_random(policy, env_cfg: EnvConfig, n: int = 200, seed: int = 2024) -> dict[str, float]:
-    """Greedy whole episodes of ``policy`` on ``n`` seeded Random (chaos) objects of ``env_cfg``'s task,
-    without the training noise; mean Rela, Final, IoU and strict Rela."""
+    """Greedy whole episodes of ``policy`` (a TorchRL policy module, or an :data:`Actor`) on ``n``
+    seeded Random (chaos) objects of ``env_cfg``'s task, without the training noise; mean Rela,
+    Final, IoU and strict Rela."""
     noise = dataclasses.replace(env_cfg.noise, action_xy=0.0, action_theta=0.0, camera_jitter=0.0)
     cfg = dataclasses.replace(env_cfg, num_worlds=min(n, 100), noise=noise, task=env_cfg.task.given_targets())
     env = TangramEnv(cfg, seed=seed)
     targets, _, mirrored = generate(env.piece_set, n, np.random.default_rng(seed), cfg.task.chaos, cfg.view)
-    res = evaluate(env, targets, policy_actor(policy), mirrored=mirrored)
+    actor = policy_actor(policy) if isinstance(policy, torch.nn.Module) else policy
+    res = evaluate(env, targets, actor, mirrored=mirrored)
     env.close()
     return {
         "n": n,

@@ -45,17 +45,16 @@ from mrchaos.learn.checkpoint import (
     save_checkpoint,
 )
 from mrchaos.learn.config import RerankConfig, TrainConfig, config_to_dict, load_config, start_run
-from mrchaos.learn.evaluate import evaluate, policy_device
+from mrchaos.learn.evaluate import evaluate_random, policy_device
 from mrchaos.learn.policy import GridCategorical, PolicyConfig, build_actor_critic, unravel_actions
-from mrchaos.tasks.chaos import generate
 
 __all__ = [
     "AfterstateRanker",
     "Reranked",
     "candidate_footprints",
     "planner_states",
-    "listwise_loss",
     "judge",
+    "listwise_loss",
     "reranked_actor",
     "train_rerank",
     "RERANK_FIELDS",
@@ -170,7 +169,9 @@ def planner_states(run: Path, extra: tuple[str, ...] = ()) -> list[dict[str, tor
 
 
 def listwise_loss(scores: torch.Tensor, iou: torch.Tensor, temperature: float) -> torch.Tensor:
-    """Per-state cross-entropy between softmax(IoU / T) over the candidates and softmax(scores)."""
+    """Per-state cross-entropy between softmax(IoU / T) over a state's candidates (B, k) and
+    softmax(``scores``) of the same candidates (a re-ranker's, or the policy's own in expert
+    iteration: :func:`mrchaos.learn.bc.ranking_loss`)."""
     target = torch.softmax(iou / temperature, -1)
     return -(target * F.log_softmax(scores, -1)).sum(-1)
 
@@ -379,18 +380,9 @@ class RerankRun:
                 100 * ha,
             )
             self._save()
-        ev = self._evaluate(100)
+        ev = evaluate_random(Reranked(self.policy, self.ranker, self.cfg.rerank.k), self.cfg.env_config(), n=100)
         write_atomic(self.run_dir / "eval.json", json.dumps(ev, indent=1) + "\n")
         return {"samples": n, "what": f"{rc.epochs} epochs of re-ranking", "loss": self.rows[-1]["loss"], **ev}
-
-    def _evaluate(self, n: int, seed: int = 2024) -> dict[str, float]:
-        cfg = self.cfg.env_config()
-        env = TangramEnv(dataclasses.replace(cfg, num_worlds=min(n, 100), task=cfg.task.given_targets()), seed=seed)
-        targets, _, mirrored = generate(env.piece_set, n, np.random.default_rng(seed), cfg.task.chaos, cfg.view)
-        actor = Reranked(self.policy, self.ranker, self.cfg.rerank.k)
-        res = evaluate(env, targets, actor, mirrored=mirrored)
-        env.close()
-        return {"n": n, "rela": float(res.rela.mean()), "final": float(res.final.mean()), "iou": float(res.iou.mean())}
 
 
 def train_rerank(cfg: TrainConfig, run_dir: Path, resume: bool = False) -> dict:
