@@ -52,7 +52,8 @@ SHIPPED = {
     ),
     "mrchaos-flip": (
         "mrchaos-flip.pt",
-        "dense supervision, DAgger and expert iteration with the flip (conf/flip_dense.yaml, then conf/flip_exit.yaml)",
+        "the flip policy's top 5 re-ranked by an afterstate network (conf/flip_dense.yaml, conf/flip_exit.yaml, "
+        "then conf/flip_rerank.yaml)",
     ),
     "mrchaos-cutlery": ("mrchaos-cutlery.pt", "MRChaos on cutlery (conf/cutlery.yaml)"),
     "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),
