@@ -270,3 +270,112 @@ def test_a_seconds_long_free_order_ppo_run_is_benched_in_free_order(tmp_path: Pa
     # A fixed-order bench cannot play it, nor a fixed-order checkpoint free order.
     assert bench_main(["--families", "random", "--random-objects", "4", "--order", "free", "--policy", "mrchaos"]) == 2
     assert "trained with fixed order" in capsys.readouterr().err
+
+
+def _midway(n: int = 8) -> TangramEnv:
+    """A free-order env whose worlds have placed the medium triangle first (out of the set's order)."""
+    env = _env(n=n)
+    env.reset()
+    first = np.full(n, env.piece_set.index("medium_triangle"))
+    env.place_poses(*oracle_poses(env, first), piece=first)
+    return env
+
+
+def test_free_order_labels_keep_the_best_actions_of_every_choosable_piece() -> None:
+    from mrchaos.learn.bc import free_label
+
+    env = _midway()
+    g, p = env.grid, env.num_pieces
+    per = g.norient * g.ny * g.nx
+    lab = free_label(env, 0.02, 0.01, top=64)
+    idx = lab["label"].long()
+    assert (idx >= 0).all() and (lab["label_coverage"][:, :-1] >= lab["label_coverage"][:, 1:]).all()
+    piece = (idx // per).numpy()
+    ok = env.choosable()
+    assert ok[np.arange(len(ok))[:, None], piece].all()  # only pieces the mask allows
+    assert len(np.unique(piece)) > 1  # the best actions of several pieces compete
+    # Each kept coverage is the counterfactual coverage of that piece at that action.
+    for w in range(len(ok)):
+        for j in (0, 63):
+            k = int(piece[w, j])
+            cov, _ = env.counterfactual(np.array([w]), piece=np.full(len(ok), k))
+            assert int(lab["label_coverage"][w, j]) == round(float(cov.flatten(1)[0, idx[w, j] % per]) * 254)
+    assert torch.isfinite(lab["label_rest"]).all()
+
+
+def test_the_free_order_loss_is_the_dense_cross_entropy_over_every_allowed_action() -> None:
+    from mrchaos.learn.bc import free_label, free_supervised_loss
+    from mrchaos.learn.policy import PieceGridCategorical, mask_pieces
+
+    env = _midway()
+    n, g, p = 8, env.grid, env.num_pieces
+    per = g.norient * g.ny * g.nx
+    allowed = torch.as_tensor(env.choosable())
+    logits = mask_pieces(torch.randn(n, p * g.norient, g.ny, g.nx, generator=torch.Generator().manual_seed(0)), allowed, g.norient)
+    dist = PieceGridCategorical(logits, 1, p)
+    # The reference: softmax(coverage / T) over every action of every allowed piece, footprints on
+    # placed pieces left out (the fixed order's dense target, per piece).
+    q = torch.full((n, p * per), -torch.inf)
+    for k in range(p):
+        rows = np.flatnonzero(allowed[:, k].numpy())
+        if len(rows):
+            cov, overlap = env.counterfactual(rows, piece=np.full(n, k))
+            c = (cov.flatten(1) * 254).round() / 254 / 0.01
+            q[torch.as_tensor(rows), k * per : (k + 1) * per] = torch.where(overlap.flatten(1) > 0.02, -torch.inf, c)
+    ref = -(torch.softmax(q, -1) * dist.logits).sum(-1)
+    whole = free_label(env, 0.02, 0.01, top=p * per)
+    assert (whole["label_rest"] == -torch.inf).all()
+    got = free_supervised_loss(dist, whole["label"], whole["label_coverage"], whole["label_rest"], 0.01)
+    assert torch.allclose(got, ref, rtol=1e-5)
+    # Kept to its best 256 actions, the label moves the loss by less than the mass it spreads.
+    top = free_label(env, 0.02, 0.01)
+    approx = free_supervised_loss(dist, top["label"], top["label_coverage"], top["label_rest"], 0.01)
+    assert (approx - ref).abs().max() < 0.05 * ref.abs().max()
+    # A policy whose logits are the target's own scores better than a uniform one, on every state.
+    own = torch.where(q.isfinite(), q, -30.0).reshape(logits.shape)
+    match = PieceGridCategorical(mask_pieces(own, allowed, g.norient), 1, p)
+    flat = PieceGridCategorical(mask_pieces(torch.zeros_like(logits), allowed, g.norient), 1, p)
+    args = (top["label"], top["label_coverage"], top["label_rest"], 0.01)
+    assert (free_supervised_loss(match, *args) < free_supervised_loss(flat, *args) - 1).all()
+
+
+def test_a_seconds_long_free_order_dense_run_is_benched_in_free_order(tmp_path: Path, capsys) -> None:
+    """conf/dense.yaml with env.order: free: random-order demonstrations, a DAgger round on the
+    policy's own choices, the loss falls, and the bench plays the checkpoint in free order."""
+    import csv
+
+    from mrchaos.cli.bench import main as bench_main
+    from mrchaos.cli.train import main as train_main
+
+    root = Path(__file__).resolve().parents[1]
+    small = [
+        str(root / "conf" / "dense.yaml"),
+        f"runs_dir={tmp_path}",
+        "env.order=free",
+        "bc.objects=32",
+        "bc.epochs=3",
+        "bc.dagger_rounds=1",
+        "bc.dagger_objects=16",
+        "bc.dagger_epochs=1",
+        "env.num_worlds=16",
+        "precision=fp32",
+        "policy.channels=[8,16,16]",
+        "policy.hidden=64",
+        "policy.context=8",
+        "optim.lr=1e-3",
+    ]
+    assert train_main(small) == 0
+    run = tmp_path / "dense"
+    with open(run / "metrics.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["round"] for r in rows] == ["0", "0", "0", "1"] and float(rows[2]["loss"]) < float(rows[0]["loss"])
+    shard = torch.load(run / "data" / "round_0.pt", weights_only=True)
+    assert shard["label"].shape == (32 * 7, 256) and shard["remaining"].shape == (32 * 7, 7)
+    # Random-order demonstrations: the first states' choosable pieces are every twin group.
+    assert shard["choosable"][:16].sum(1).eq(5).all()
+    out = tmp_path / "bench"
+    assert bench_main(["--families", "random", "--random-objects", "6", "--policy", str(run), "--out", str(out)]) == 0
+    assert "--order free implied by dense" in capsys.readouterr().err
+    # Free order takes dense targets only, and no planner rounds.
+    assert train_main([*small, "bc.targets=oracle", "name=oracle"]) == 2
+    assert "bc.targets: dense" in capsys.readouterr().err

@@ -33,7 +33,7 @@ from tensordict import TensorDict
 
 from mrchaos.core.atomic import write_atomic
 from mrchaos.core.geometry import rigid_transform
-from mrchaos.env.oracle import oracle_actions
+from mrchaos.env.oracle import oracle_actions, random_pieces
 from mrchaos.env.tangram import TangramEnv
 from mrchaos.figures.figure import Figure
 from mrchaos.figures.formats import load_figures
@@ -43,7 +43,7 @@ from mrchaos.learn.checkpoint import CheckpointError, checkpoint_path, load_weig
 from mrchaos.learn.config import TrainConfig, config_to_dict, start_run
 from mrchaos.learn.evaluate import evaluate, evaluate_random, policy_actor
 from mrchaos.learn.planner import Lookahead
-from mrchaos.learn.policy import GridCategorical, build_actor_critic
+from mrchaos.learn.policy import MASKED_LOGIT, GridCategorical, PieceGridCategorical, build_actor_critic
 from mrchaos.learn.precision import autocast
 from mrchaos.learn.rerank import listwise_loss
 from mrchaos.tasks.chaos import generate
@@ -98,6 +98,48 @@ def _dense_label(env: TangramEnv, overlap_limit: float, rows: np.ndarray | None 
     return q
 
 
+#: Free-order labels keep each state's best actions over all its choosable pieces (a full label
+#: would be P times the fixed order's: 145 kB a state for the tangram set); the softmax(coverage /
+#: T) target puts 98.9 % of its mass on the best 256 on average (measured on conf/flip_exit.yaml's
+#: dense labels), and the rest's mass is kept as one number (:func:`free_label`).
+FREE_LABEL_TOP = 256
+
+#: The extra keys of a free-order shard: the label's coverage of its kept actions, the log of the
+#: target mass of the actions not kept, and what the policy reads besides the image.
+FREE_SHARD_KEYS = ("label_coverage", "label_rest", "remaining", "choosable")
+
+
+def free_label(
+    env: TangramEnv, overlap_limit: float, temperature: float, rows: np.ndarray | None = None, top: int = FREE_LABEL_TOP
+) -> dict[str, torch.Tensor]:
+    """The dense label of every world (or of worlds ``rows``) with free order, over the placements of
+    every piece it may choose (:meth:`TangramEnv.choosable`): ``label`` (R, top) int32 flat indices
+    (piece, theta, y, x) of the best actions by counterfactual coverage (-1 pads; footprints on
+    placed pieces are left out, as in :func:`_dense_label`), ``label_coverage`` (R, top) uint8 their
+    coverage * 254, and ``label_rest`` (R,) float32 the log of the summed exp(coverage /
+    ``temperature``) of the allowed actions not kept (-inf when none)."""
+    n = env.batch_size[0]
+    r = np.arange(n) if rows is None else np.asarray(rows)
+    ok = env.choosable()[r]
+    g = env.grid
+    per = g.norient * g.ny * g.nx
+    q = torch.full((len(r), env.num_pieces * per), -1, dtype=torch.int16)
+    for p in np.flatnonzero(ok.any(0)):
+        sel = np.flatnonzero(ok[:, p])
+        cov, overlap = env.counterfactual(r[sel], piece=np.full(n, p))
+        c = (cov.flatten(1) * 254).round().to(torch.int16)
+        q[torch.as_tensor(sel), p * per : (p + 1) * per] = torch.where(overlap.flatten(1) > overlap_limit, -1, c)
+    val, idx = q.topk(top, -1)
+    allowed = q >= 0
+    logits = torch.where(allowed, q.float() / 254 / temperature, -torch.inf)
+    logits.scatter_(1, idx, -torch.inf)  # what is kept leaves the rest
+    return {
+        "label": torch.where(val >= 0, idx, -1).to(torch.int32),
+        "label_coverage": val.clamp_min(0).to(torch.uint8),
+        "label_rest": torch.logsumexp(logits, -1),
+    }
+
+
 def demonstrations(
     env: TangramEnv,
     targets: np.ndarray,
@@ -105,31 +147,48 @@ def demonstrations(
     dense: bool = False,
     overlap_limit: float = 0.02,
     mirrored: np.ndarray | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Observations (M*P, 2, H, W) uint8 along each assembly and their labels.
+    temperature: float = 0.01,
+    generator: torch.Generator | None = None,
+) -> dict[str, torch.Tensor]:
+    """The states along each assembly and their labels: ``observation`` (M*P, 2, H, W) uint8 and
+    ``label``.
 
     ``mirrored`` (M, P) bool marks target pieces that lie turned over (the env needs the flip).
 
     The assemblies are the oracle's, or ``actor``'s (DAgger: the states a policy reaches);
     the labels are the oracle's grid actions (M*P, 3), or with ``dense`` the counterfactual
-    coverage of every grid action (M*P, T, Y, X) uint8 (see :func:`_dense_label`).
+    coverage of every grid action (M*P, T, Y, X) uint8 (see :func:`_dense_label`). With free
+    order (dense only) the label is :func:`free_label`'s (``temperature`` is its target's), the
+    oracle places its pieces in an order drawn with ``generator``, and the states also hold
+    ``remaining`` and ``choosable`` (M*P, P) bool.
     """
-    obs, labels = [], []
+    if env.free_order and not dense:
+        raise ValueError("with env.order: free, supervision needs dense targets (bc.targets: dense)")
+    parts: dict[str, list[torch.Tensor]] = {}
+    order = generator if generator is not None else torch.Generator().manual_seed(0)
+
+    def add(key: str, value: torch.Tensor) -> None:
+        parts.setdefault(key, []).append(value)
 
     def act(e: TangramEnv, td: TensorDict) -> torch.Tensor:
         # Label the state before acting on it; padded worlds of a last chunk are labelled too
         # (they repeat a real target) and are dropped below with the rest of the padding.
-        obs.append(td["observation"].clone())
-        labels.append(_dense_label(e, overlap_limit) if dense else oracle_actions(e))
+        add("observation", td["observation"].clone())
+        if e.free_order:
+            for key, value in free_label(e, overlap_limit, temperature).items():
+                add(key, value)
+            add("remaining", td["remaining"].clone())
+            add("choosable", torch.as_tensor(e.choosable()))
+            if actor is None:
+                return oracle_actions(e, random_pieces(e, order))
+        else:
+            add("label", _dense_label(e, overlap_limit) if dense else oracle_actions(e))
         return oracle_actions(e) if actor is None else actor(e, td)
 
     evaluate(env, targets, act, mirrored=mirrored)
     nw, n, p = env.batch_size[0], len(targets), env.num_pieces
     keep = [min(nw, n - start) for start in range(0, n, nw) for _ in range(p)]
-    return (
-        torch.cat([o[:k] for o, k in zip(obs, keep, strict=True)]),
-        torch.cat([lb[:k] for lb, k in zip(labels, keep, strict=True)]),
-    )
+    return {key: torch.cat([v[:k] for v, k in zip(vs, keep, strict=True)]) for key, vs in parts.items()}
 
 
 def _targets(cfg: TrainConfig, rng: np.random.Generator, n_chaos: int, seed: int) -> tuple[np.ndarray, np.ndarray, str]:
@@ -162,6 +221,30 @@ def supervised_loss(dist, labels: torch.Tensor, dense: bool, temperature: float)
     logits = torch.where(q == _MASKED, -torch.inf, q.float() / 254 / temperature)
     target = torch.softmax(logits, -1)
     return -(target * dist.logits).sum(-1)
+
+
+def free_supervised_loss(
+    dist: PieceGridCategorical, label: torch.Tensor, coverage: torch.Tensor, rest: torch.Tensor, temperature: float
+) -> torch.Tensor:
+    """Per-sample cross-entropy against a free-order label (:func:`free_label`): softmax(coverage / T)
+    over the kept actions, and the rest's mass spread evenly over the other actions of the pieces
+    the state allows (those whose logits the policy has not masked)."""
+    scores = dist.scores
+    lse = torch.logsumexp(scores, -1)
+    valid = label >= 0
+    kept = torch.where(valid, scores.gather(-1, label.long().clamp_min(0)) - lse[:, None], 0.0)
+    target = torch.softmax(
+        torch.cat([torch.where(valid, coverage.float() / 254 / temperature, -torch.inf), rest[:, None].float()], -1),
+        -1,
+    )
+    # Sums per piece: a masked piece's channels all hold MASKED_LOGIT, and drop out whole (one pass
+    # over the scores instead of a masked copy of them).
+    per_piece = scores.reshape(len(scores), dist.pieces, -1)
+    allowed = per_piece[:, :, 0] > MASKED_LOGIT / 2
+    total = torch.where(allowed, per_piece.sum(-1), 0.0).sum(-1) - allowed.sum(-1) * per_piece.shape[-1] * lse
+    others = (allowed.sum(-1) * per_piece.shape[-1] - valid.sum(-1)).clamp_min(1)
+    mean_rest = (total - kept.sum(-1)) / others
+    return -((target[:, :-1] * kept).sum(-1) + target[:, -1] * mean_rest)
 
 
 def ranking_loss(
@@ -206,10 +289,15 @@ class SupervisedRun:
         )
         if ex.rounds and cfg.env.num_worlds < ex.k:
             raise ValueError(f"exit.k={ex.k} candidates need env.num_worlds >= {ex.k}, got {cfg.env.num_worlds}")
-        if cfg.env.order != "fixed":
-            raise ValueError("supervision (algo: bc) labels the set's order; with env.order: free train with algo: ppo")
+        self.free = cfg.env.order == "free"  # dense targets, no planner rounds (TrainConfig checks)
+        #: What a shard holds: with free order also the sparse label's parts and the policy's inputs.
+        self.keys = SHARD_KEYS + (FREE_SHARD_KEYS if self.free else ())
         self.env = TangramEnv(dataclasses.replace(cfg.env_config(), task=cfg.task.given_targets()), seed=cfg.seed)
-        self.ac = build_actor_critic(cfg.policy, self.env.grid, self.env.view, self.env.action_spec).to(self.device)
+        pieces = self.env.num_pieces if self.free else 0  # free order: the policy chooses the piece too
+        self.ac = build_actor_critic(cfg.policy, self.env.grid, self.env.view, self.env.action_spec, pieces)
+        self.ac = self.ac.to(self.device)
+        # The oracle's piece order in free-order demonstrations.
+        self.order_generator = torch.Generator().manual_seed(cfg.seed)
         self.policy = self.ac.get_policy_operator()
         self.opt = torch.optim.Adam(self.ac.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
         self.rows: list[dict] = []
@@ -234,27 +322,32 @@ class SupervisedRun:
         bc = cfg.bc
         if kind == "demo":
             if self.plan[r][1] == 0:  # no demonstrations (a run that starts from init_from)
-                return self._shard(
-                    torch.zeros(0, 2, self.env.view.size, self.env.view.size, dtype=torch.uint8), self._empty_labels()
-                ), "no demonstrations"
+                return self._shard(self._empty_states()), "no demonstrations"
             targets, faces, what = _targets(cfg, self.rng, bc.objects, bc.seed)
-            obs, labels = demonstrations(
-                self.env, targets, dense=self.dense, overlap_limit=bc.overlap_limit, mirrored=faces
+            states = demonstrations(
+                self.env,
+                targets,
+                dense=self.dense,
+                overlap_limit=bc.overlap_limit,
+                mirrored=faces,
+                temperature=bc.temperature,
+                generator=self.order_generator,
             )
             self.episodes += len(targets)
-            return self._shard(obs, labels), what
+            return self._shard(states), what + (" in random orders" if self.free else "")
         if kind == "dagger":
             targets, faces, what = _targets(cfg, self.rng, bc.dagger_objects, bc.seed + r)
-            obs, labels = demonstrations(
+            states = demonstrations(
                 self.env,
                 targets,
                 actor=policy_actor(self.policy),
                 dense=self.dense,
                 overlap_limit=bc.overlap_limit,
                 mirrored=faces,
+                temperature=bc.temperature,
             )
             self.episodes += len(targets)
-            return self._shard(obs, labels), f"the policy's own assemblies of {what}"
+            return self._shard(states), f"the policy's own assemblies of {what}"
         ex = cfg.exit
         targets, faces, what = _targets(cfg, self.rng, ex.objects, bc.seed + 1000 + r)
         planner = Lookahead(self.policy, ex.k)
@@ -281,7 +374,8 @@ class SupervisedRun:
             len(lab),
         )
         assert lab.extra is not None  # on_state labelled every state
-        return self._shard(lab.observation, lab.extra, lab.candidates, lab.iou), f"the planner's assemblies of {what}"
+        states = {"observation": lab.observation, "label": lab.extra}
+        return self._shard(states, lab.candidates, lab.iou), f"the planner's assemblies of {what}"
 
     def _state_label(self, env: TangramEnv, rows: np.ndarray) -> torch.Tensor:
         """The dense or oracle label of worlds ``rows`` in their current state."""
@@ -289,24 +383,30 @@ class SupervisedRun:
             return _dense_label(env, self.cfg.bc.overlap_limit, rows)
         return oracle_actions(env)[rows]
 
-    def _empty_labels(self) -> torch.Tensor:
-        g = self.env.grid
-        return torch.zeros(
-            (0, g.norient, g.ny, g.nx) if self.dense else (0, 3), dtype=torch.uint8 if self.dense else torch.int64
-        )
+    def _empty_states(self) -> dict[str, torch.Tensor]:
+        g, v, p = self.env.grid, self.env.view, self.env.num_pieces
+        obs = torch.zeros(0, 2, v.size, v.size, dtype=torch.uint8)
+        if self.free:
+            top = FREE_LABEL_TOP
+            return {
+                "observation": obs,
+                "label": torch.zeros(0, top, dtype=torch.int32),
+                "label_coverage": torch.zeros(0, top, dtype=torch.uint8),
+                "label_rest": torch.zeros(0),
+                "remaining": torch.zeros(0, p, dtype=torch.bool),
+                "choosable": torch.zeros(0, p, dtype=torch.bool),
+            }
+        shape, dtype = ((0, g.norient, g.ny, g.nx), torch.uint8) if self.dense else ((0, 3), torch.int64)
+        return {"observation": obs, "label": torch.zeros(shape, dtype=dtype)}
 
     def _shard(
-        self,
-        obs: torch.Tensor,
-        labels: torch.Tensor,
-        candidates: torch.Tensor | None = None,
-        iou: torch.Tensor | None = None,
+        self, states: dict[str, torch.Tensor], candidates: torch.Tensor | None = None, iou: torch.Tensor | None = None
     ) -> dict[str, torch.Tensor]:
-        k = self.cfg.exit.k
+        k, n = self.cfg.exit.k, len(states["observation"])
         if candidates is None or iou is None:
-            candidates = torch.zeros(len(obs), k, 3, dtype=torch.int64)
-            iou = torch.full((len(obs), k), float("nan"))
-        return {"observation": obs, "label": labels, "candidates": candidates, "iou": iou}
+            candidates = torch.zeros(n, k, 3, dtype=torch.int64)
+            iou = torch.full((n, k), float("nan"))
+        return {**states, "candidates": candidates, "iou": iou}
 
     def _load_or_label(self, r: int) -> None:
         """Round ``r``'s data: from its shard if an earlier attempt wrote it, else labelled now."""
@@ -319,8 +419,8 @@ class SupervisedRun:
                 raise CheckpointError(
                     f"{path}: not a readable data shard ({type(e).__name__}: {str(e)[:160]})"
                 ) from None
-            if not isinstance(shard, dict) or set(shard) != set(SHARD_KEYS):
-                raise CheckpointError(f"{path}: not a data shard of a supervised run (keys {SHARD_KEYS})")
+            if not isinstance(shard, dict) or set(shard) != set(self.keys):
+                raise CheckpointError(f"{path}: not a data shard of this supervised run (keys {self.keys})")
             log.info("round %d: %d labelled states from %s", r, len(shard["observation"]), path)
         else:
             t0 = time.perf_counter()
@@ -388,6 +488,16 @@ class SupervisedRun:
         log.info("resumed %s at round %d, epoch %d", self.ckpt, self.round, self.epoch)
 
     # ------------------------------------------------------------------ learning
+    def _inputs(self, data: dict[str, torch.Tensor], idx: torch.Tensor) -> TensorDict:
+        """What the policy reads of states ``idx``: the image, and with free order the pieces left
+        and the action mask (the choosable pieces; every x, y and orientation allowed)."""
+        td = TensorDict(observation=data["observation"][idx], batch_size=[len(idx)])
+        if self.free:
+            choosable = data["choosable"][idx]
+            rest = torch.ones(len(idx), int(sum(self.env.grid.nvec)), dtype=torch.bool)
+            td.update(remaining=data["remaining"][idx], action_mask=torch.cat([choosable, rest], 1))
+        return td.to(self.device)
+
     def _fit_epoch(self, data: dict[str, torch.Tensor], planned: int, sup_weight: float = 1.0) -> dict:
         cfg, bc = self.cfg, self.cfg.bc
         n = len(data["observation"])
@@ -402,10 +512,20 @@ class SupervisedRun:
             obs = data["observation"][idx].to(self.device)
             iou = data["iou"][idx].to(self.device)
             with autocast(cfg.precision, self.device):
-                dist = self.policy.get_dist(TensorDict(observation=obs, batch_size=[len(idx)]))
+                dist = self.policy.get_dist(self._inputs(data, idx))
                 # With weight 0 the supervised loss is only logged: no backward pass through it.
                 with torch.set_grad_enabled(sup_weight > 0 and torch.is_grad_enabled()):
-                    sup = supervised_loss(dist, data["label"][idx].to(self.device), self.dense, bc.temperature).mean()
+                    label = data["label"][idx].to(self.device)
+                    if self.free:
+                        sup = free_supervised_loss(
+                            dist,
+                            label,
+                            data["label_coverage"][idx].to(self.device),
+                            data["label_rest"][idx].to(self.device),
+                            bc.temperature,
+                        ).mean()
+                    else:
+                        sup = supervised_loss(dist, label, self.dense, bc.temperature).mean()
                 has = ~iou[:, 0].isnan()
                 rank = torch.zeros((), device=self.device)
                 if has.any():
@@ -432,7 +552,7 @@ class SupervisedRun:
             self._load_or_label(0)
         while True:
             kind, epochs = self.plan[self.round]
-            data = {k: torch.cat([s[k] for s in self.shards]) for k in SHARD_KEYS}
+            data = {k: torch.cat([s[k] for s in self.shards]) for k in self.keys}
             while self.epoch < epochs:
                 res = self._fit_epoch(data, planned, self.cfg.exit.dense if kind == "exit" else 1.0)
                 self.epoch += 1
