@@ -156,7 +156,9 @@ def test_a_supervised_run_killed_after_its_first_epoch_resumes_from_it(tmp_path,
     assert load_checkpoint(cut / "checkpoints" / "last.pt")["supervision"]["epoch"] == 1
     with open(cut / "metrics.csv") as f:
         assert len(list(csv.DictReader(f))) == 1
+    config = (cut / "config.yaml").read_bytes()
     assert train_main(["--resume", str(cut)]) == 0
+    assert (cut / "config.yaml").read_bytes() == config  # a plain resume keeps the file as it is
     whole = load_checkpoint(tmp_path / "whole" / "dense" / "checkpoints" / "last.pt")
     resumed = load_checkpoint(cut / "checkpoints" / "last.pt")
     # The same four epochs, the DAgger round's labels included, to the last bit.
@@ -164,6 +166,20 @@ def test_a_supervised_run_killed_after_its_first_epoch_resumes_from_it(tmp_path,
     with open(cut / "metrics.csv") as f, open(tmp_path / "whole" / "dense" / "metrics.csv") as g:
         a, b = list(csv.DictReader(f)), list(csv.DictReader(g))
     assert [r["loss"] for r in a] == [r["loss"] for r in b] and len(a) == 4
+
+
+def test_a_resume_with_overrides_records_them_in_the_run_config(tmp_path):
+    import dataclasses
+
+    import yaml
+
+    from mrchaos.learn.config import load_config, start_run
+
+    cfg = load_config(ROOT / "conf" / "dense.yaml")
+    start_run(cfg, tmp_path)
+    shorter = dataclasses.replace(cfg, bc=dataclasses.replace(cfg.bc, dagger_rounds=1))
+    start_run(shorter, tmp_path, resume=True)
+    assert yaml.safe_load((tmp_path / "config.yaml").read_text())["bc"]["dagger_rounds"] == 1
 
 
 def test_exit_config_errors(tmp_path, capsys):

@@ -66,6 +66,12 @@ TABLES: dict[str, list[str]] = {
              "--policy", "mrchaos"],
     "flip_mirrored": ["--families", "all", "--figures", "{mirrored}", "--flip", "--policy", "mrchaos-flip",
                       "--policy", "mrchaos"],
+    # docs/free-order.md: the free-order policy beside its fixed-order twin (the same recipe and
+    # data), placed by teleport and by the simulated UR5e (collisions and stacking).
+    "free": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--policy", "mrchaos-free",
+             "--policy", "mrchaos-fixed-twin", "--policy", "mrchaos-dense"],
+    "free_robot": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--placement", "robot",
+                   "--policy", "mrchaos-free", "--policy", "mrchaos-fixed-twin"],
 }  # fmt: skip
 
 

@@ -90,8 +90,8 @@ def _parser() -> argparse.ArgumentParser:
         choices=["fixed", "free"],
         default="fixed",
         help="fixed: pieces go down in the set's order (the paper's task); free: the policy chooses "
-        "which piece goes next (random and oracle draw it among the pieces left). Implied when a "
-        "policy was trained with free order",
+        "which piece goes next (random and oracle draw it among the pieces left). A checkpoint plays in "
+        "the order it was trained with; implied when every checkpoint benched was trained with free order",
     )
     ap.add_argument("--out", type=Path, default=Path("runs/bench"))
     ap.add_argument("--seed", type=int, default=0)
@@ -140,9 +140,18 @@ def _bench(args: argparse.Namespace) -> int:
             + ": figures that need a piece turned over are evaluated",
             file=sys.stderr,
         )
-    order = "free" if args.order == "free" or any(s.order == "free" for s in specs) else "fixed"
-    if order != args.order:
-        print("--order free implied by " + ", ".join(s.name for s in specs if s.order == "free"), file=sys.stderr)
+    # Every checkpoint plays in the order it was trained with; --order sets the baselines' (random,
+    # oracle). Free-order checkpoints alone imply it; beside fixed-order ones the baselines keep the
+    # set's order.
+    free = [s.name for s in specs if s.order == "free"]
+    checkpoints = [s for s in specs if s.kind == "checkpoint"]
+    order = args.order
+    if free and order == "fixed":
+        if all(s.order == "free" for s in checkpoints):
+            order = "free"
+            print("--order free implied by " + ", ".join(free), file=sys.stderr)
+        else:
+            print("free order for " + ", ".join(free) + "; the other policies keep the set's", file=sys.stderr)
     sets = [load_figures(p) for p in args.figures] if args.figures else None  # None: the task's own goals
     if args.video and args.video.suffix.lower() not in (".gif", ".mp4"):
         raise ValueError(f"{args.video}: --video must end in .gif or .mp4")

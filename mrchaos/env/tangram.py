@@ -235,6 +235,7 @@ class TangramEnv(EnvBase):
             strict_rela=scalar(),
             physics=flag(),
             penetration=scalar(),
+            onto_piece=flag(),
             piece=Unbounded(shape=(n, 1), dtype=torch.int64),
             reward_terms=Composite({k: scalar() for k in REWARD_TERMS}, shape=bs),
             **{k: flag() for k in ROBOT_FAILURES},
@@ -444,18 +445,26 @@ class TangramEnv(EnvBase):
         rows = np.flatnonzero(self.next_piece < self.end_piece)
         physics = np.zeros(n, dtype=bool)
         penetration = np.zeros(n)
+        onto = np.zeros(n, dtype=bool)
         failures = {k: np.zeros(n, dtype=bool) for k in ROBOT_FAILURES}
         if len(rows):
             t0 = time.perf_counter()
             res = self._worlds.place(rows, piece[rows], poses[rows], None if mirrored is None else mirrored[rows])
             self._timings["physics"] += time.perf_counter() - t0
-            physics[rows], penetration[rows] = res.physics, res.penetration
+            physics[rows], penetration[rows], onto[rows] = res.physics, res.penetration, res.onto
             if res.robot is not None:
                 for k in ROBOT_FAILURES:
                     failures[k][rows] = getattr(res.robot, k)
             self.next_piece[rows] += 1
             self._last_placed[rows] = piece[rows]
-        return self._observe(fresh=False, placement=_Placement(piece, rows, commanded, physics, penetration, failures))
+        return self._observe(
+            fresh=False, placement=_Placement(piece, rows, commanded, physics, penetration, onto, failures)
+        )
+
+    def off_table(self) -> np.ndarray:
+        """(N, P) bool: the placed pieces that do not lie flat on the table (stacked on another, or
+        leaning on one): the stacking the paper expects a free order to reduce."""
+        return self._worlds.off_table()
 
     def perturb(self, rows: np.ndarray, distance: float) -> None:
         """Push one placed piece of each world in ``rows`` away, ``distance`` metres in a random direction.
@@ -648,6 +657,7 @@ class TangramEnv(EnvBase):
             strict_rela=col(strict),
             physics=no if placement is None else col(placement.physics, torch.bool),
             penetration=torch.zeros(n, 1) if placement is None else col(placement.penetration),
+            onto_piece=no if placement is None else col(placement.onto, torch.bool),
             piece=pieces[:, None],
             reward_terms=TensorDict({k: col(v) for k, v in terms.items()}, batch_size=self.batch_size),
             **{k: no if placement is None else col(placement.failures[k], torch.bool) for k in ROBOT_FAILURES},
@@ -658,11 +668,13 @@ class TangramEnv(EnvBase):
 @dataclass
 class _Placement:
     """What a step's placement did, per world: the piece, which worlds acted, the commanded
-    pose, whether physics ran, penetration depth and robot failures."""
+    pose, whether physics ran, penetration depth, whether it was set down onto a placed piece and
+    robot failures."""
 
     piece: np.ndarray
     acted: np.ndarray
     commanded: np.ndarray
     physics: np.ndarray
     penetration: np.ndarray
+    onto: np.ndarray
     failures: dict[str, np.ndarray]

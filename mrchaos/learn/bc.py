@@ -16,6 +16,10 @@ reads no solution) assemble new chaos objects, and teach the policy the planner'
 its own top-k candidates at every state (:func:`ranking_loss`) beside the dense targets of the
 same states; the better policy makes the better planner for the next round. The network is the
 same actor as PPO's. Every epoch leaves a checkpoint, so a run resumes where it stopped.
+
+With free order (``env.order: free``) the dense label grades the placements of every piece a state
+allows, kept as its best actions and the rest's mass (:func:`free_label`,
+:func:`free_supervised_loss`); demonstrations place the pieces in random orders.
 """
 
 from __future__ import annotations
@@ -509,7 +513,6 @@ class SupervisedRun:
             for group in self.opt.param_groups:
                 group["lr"] = cfg.optim.learning_rate((len(self.rows) + i / n) / planned)
             # The labelled data stays on the CPU (it can be large); minibatches go to the device.
-            obs = data["observation"][idx].to(self.device)
             iou = data["iou"][idx].to(self.device)
             with autocast(cfg.precision, self.device):
                 dist = self.policy.get_dist(self._inputs(data, idx))

@@ -55,6 +55,14 @@ SHIPPED = {
         "the flip policy's top 5 re-ranked by an afterstate network (conf/flip_dense.yaml, conf/flip_exit.yaml, "
         "then conf/flip_rerank.yaml)",
     ),
+    "mrchaos-free": (
+        "mrchaos-free.pt",
+        "free order: dense supervision and DAgger, the policy picks the piece (conf/free.yaml)",
+    ),
+    "mrchaos-fixed-twin": (
+        "mrchaos-fixed-twin.pt",
+        "mrchaos-free's twin in the set's order (conf/free.yaml env.order=fixed)",
+    ),
     "mrchaos-cutlery": ("mrchaos-cutlery.pt", "MRChaos on cutlery (conf/cutlery.yaml)"),
     "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),
 }

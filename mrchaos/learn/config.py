@@ -636,11 +636,14 @@ def config_to_dict(cfg: Any) -> dict:
 
 def start_run(cfg: TrainConfig, run_dir: Path, resume: bool = False) -> Path:
     """Open a run folder for an epoch-checkpointed run: ``checkpoints/`` made, the resolved config
-    written as ``config.yaml`` (kept as it is when resuming), torch's threads and seed set from the
-    config; returns the path of ``checkpoints/last.pt``."""
+    written as ``config.yaml`` (when resuming, rewritten only if overrides changed it, so that the
+    file says what the rest of the run does), torch's threads and seed set from the config; returns
+    the path of ``checkpoints/last.pt``."""
     (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
-    if not resume:
-        write_atomic(run_dir / "config.yaml", yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+    text = yaml.safe_dump(config_to_dict(cfg), sort_keys=False)
+    path = run_dir / "config.yaml"
+    if not resume or not path.exists() or yaml.safe_load(path.read_text()) != yaml.safe_load(text):
+        write_atomic(path, text)
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     return run_dir / "checkpoints" / "last.pt"

@@ -37,6 +37,9 @@ class EpisodeResults:
     silhouettes: np.ndarray  # (n, H, W) uint8
     final_views: np.ndarray  # (n, H, W) uint8
     failures: dict[str, np.ndarray] | None = None  # robot failure counts per episode
+    #: Per episode: placements set down onto a placed piece (``onto_piece``) and pieces that end
+    #: off the table, stacked or leaning (``off_table``): the collisions and stacking of the paper.
+    contacts: dict[str, np.ndarray] | None = None
     perturbation: dict[str, np.ndarray] | None = None  # Final and pushed-piece coverage around the push
     steps: list[dict] | None = None
 
@@ -85,7 +88,7 @@ def evaluate(
     n, nw, p = len(targets), env.batch_size[0], env.num_pieces
     if perturb_after is not None and not 0 <= perturb_after < p:
         raise ValueError(f"perturb_after must be in [0, {p - 1}], got {perturb_after}")
-    keys = ("rela", "final", "iou", "strict", "cov", "order", "sil", "view", "fail", "pert")
+    keys = ("rela", "final", "iou", "strict", "cov", "order", "sil", "view", "fail", "contact", "pert")
     out: dict[str, list] = {k: [] for k in keys}
     # What an actor reads: the image, and with free order the pieces left and the action mask.
     inputs = ["observation", *(FREE_ORDER_KEYS if env.free_order else ())]
@@ -103,6 +106,7 @@ def evaluate(
         cov: list[torch.Tensor] = []
         order: list[torch.Tensor] = []
         fail = {k: torch.zeros(nw, dtype=torch.int64) for k in ROBOT_FAILURES}
+        onto = torch.zeros(nw, dtype=torch.int64)
         pert = {}
         for t in range(p):
             action = actor(env, td)
@@ -111,6 +115,7 @@ def evaluate(
             order.append(nxt["info", "piece"][:, 0])
             for k in ROBOT_FAILURES:
                 fail[k] += nxt["info", k][:, 0].long()
+            onto += nxt["info", "onto_piece"][:, 0].long()
             if t == perturb_after:
                 pert["final_before"] = nxt["info", "final"][:m, 0].numpy().copy()
                 pushed = (torch.arange(m), order[t][:m])  # the piece this step placed
@@ -144,10 +149,11 @@ def evaluate(
         out["sil"].append(silhouettes)
         out["view"].append(nxt["observation"][:m, 1].numpy().copy())
         out["fail"].append({k: v[:m].numpy() for k, v in fail.items()})
+        out["contact"].append({"onto_piece": onto[:m].numpy(), "off_table": env.off_table()[:m].sum(1)})
         if pert:
             pert["final_end"] = nxt["info", "final"][:m, 0].numpy().copy()
             out["pert"].append(pert)
-    cat = {k: np.concatenate(v) for k, v in out.items() if k not in ("fail", "pert")}
+    cat = {k: np.concatenate(v) for k, v in out.items() if k not in ("fail", "contact", "pert")}
 
     return EpisodeResults(
         rela=cat["rela"],
@@ -159,6 +165,7 @@ def evaluate(
         silhouettes=cat["sil"],
         final_views=cat["view"],
         failures=_merge(out["fail"]),
+        contacts=_merge(out["contact"]),
         perturbation=_merge(out["pert"]),
         steps=steps if record_steps else None,
     )
@@ -218,5 +225,6 @@ def concat_results(parts: list[EpisodeResults]) -> EpisodeResults:
         silhouettes=arrays["silhouettes"],
         final_views=arrays["final_views"],
         failures=_merge([r.failures for r in parts]),
+        contacts=_merge([r.contacts for r in parts]),
         perturbation=_merge([r.perturbation for r in parts]),
     )

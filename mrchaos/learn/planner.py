@@ -5,7 +5,9 @@ training (expert iteration: :mod:`mrchaos.learn.bc` distils its ranking into the
 
 For every step t of an episode, k copies of the world replay the placements chosen so far, each
 copy places the piece at one of the policy's k best actions (``GridCategorical.top_modes``: with a
-mode window, k separate peaks), and the policy then completes the assembly greedily. The candidate
+mode window, k separate peaks), and the policy then completes the assembly greedily. With free order
+(``env.order: free``) a candidate is (piece, x, y, orientation): the planner weighs which piece
+goes next as well as where, and the completions follow the policy's own order. The candidate
 whose completion reaches the highest IoU of the occupied area with the silhouette wins (ties go to
 the policy's order, so k = 1 is the greedy policy). IoU is observable: the silhouette is the prompt
 and the occupied area is the view. The planner uses the simulator as its model, so it is a planner
@@ -25,9 +27,9 @@ import numpy as np
 import torch
 from tensordict import TensorDict
 
-from mrchaos.env.tangram import TangramEnv
+from mrchaos.env.tangram import FREE_ORDER_KEYS, TangramEnv
 from mrchaos.learn.evaluate import Actor, policy_device
-from mrchaos.learn.policy import GridCategorical, unravel_actions
+from mrchaos.learn.policy import GridCategorical
 
 if TYPE_CHECKING:  # the re-ranker module builds on this one's layer; only its type is needed here
     from mrchaos.learn.rerank import Reranked
@@ -41,7 +43,8 @@ class PlannerLabels:
 
     Attributes:
         observation: (S, 2, H, W) uint8, the state before the step (as the policy saw it).
-        candidates: (S, k, 3) int64 grid actions (x, y, orientation), in the policy's order.
+        candidates: (S, k, 3) int64 grid actions (x, y, orientation), in the policy's order
+            ((S, k, 4) with free order, the piece first).
         iou: (S, k) float32 silhouette IoU at the end of each candidate's greedy completion.
         step: (S,) int64 the step (piece index) of the state.
         extra: (S, ...) what ``on_state`` returned for the state (e.g. dense targets), or None.
@@ -78,24 +81,25 @@ class Lookahead:
 
     def _dist(self, td: TensorDict) -> GridCategorical:
         with torch.no_grad():
-            dist = self.policy.get_dist(td.select("observation").clone().to(policy_device(self.policy)))
+            obs = td.select("observation", *FREE_ORDER_KEYS, strict=False).clone()
+            dist = self.policy.get_dist(obs.to(policy_device(self.policy)))
         if not isinstance(dist, GridCategorical):
             raise ValueError("lookahead needs a spatial policy (one score per grid action)")
         return dist
 
     def _candidates(self, env: TangramEnv, td: TensorDict) -> torch.Tensor:
-        """(N, k, 3) the k best grid actions in the policy's (or the re-ranker's) order, best first."""
+        """(N, k, 3) the k best grid actions in the policy's (or the re-ranker's) order, best first
+        ((N, k, 4) with free order)."""
         if self.reranked is not None:
             return self.reranked.ranked(env, td)[:, : self.k].cpu()
-        dist = self._dist(td)
-        _, y, x = dist.grid_shape
-        return unravel_actions(dist.top_modes(self.k).cpu(), x, y)
+        return self._dist(td).top_actions(self.k).cpu()
 
     def _greedy(self, env: TangramEnv, td: TensorDict) -> torch.Tensor:
         return self.reranked(env, td).cpu() if self.reranked is not None else self._dist(td).mode.cpu()
 
     def plan(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None = None) -> np.ndarray:
-        """The chosen (x, y, orientation) index of every step of every target: (n, pieces, 3)."""
+        """The chosen (x, y, orientation) index of every step of every target: (n, pieces, 3);
+        with free order (piece, x, y, orientation), (n, pieces, 4)."""
         return self._run(env, targets, mirrored)[0]
 
     def label(
@@ -124,8 +128,11 @@ class Lookahead:
         n, nw, p, k = len(targets), env.batch_size[0], env.num_pieces, self.k
         if nw < k:
             raise ValueError(f"lookahead k={k} needs at least k worlds, the env has {nw}")
+        if env.free_order and self.reranked is not None:
+            raise ValueError("the re-ranker ranks placements in the set's order: no lookahead around it in free order")
         per = nw // k
-        chosen = np.zeros((n, p, 3), dtype=np.int64)
+        inputs = ["observation", *(FREE_ORDER_KEYS if env.free_order else ())]
+        chosen = np.zeros((n, p, 4 if env.free_order else 3), dtype=np.int64)
         rec: dict[str, list[torch.Tensor]] = {"observation": [], "candidates": [], "iou": [], "step": [], "extra": []}
         for start in range(0, n, per):
             m = min(per, n - start)
@@ -154,7 +161,7 @@ class Lookahead:
                     else:
                         action = self._greedy(env, td)
                     nxt = env.step(td.set("action", action.to(env.device)))["next"]
-                    td = TensorDict(observation=nxt["observation"], batch_size=env.batch_size)
+                    td = nxt.select(*inputs)
                 iou = nxt["info", "iou"][: m * k, 0].reshape(m, k).cpu()
                 best = iou.argmax(1)  # the first of equal IoUs: the policy's order
                 picks = first + best
@@ -180,8 +187,8 @@ class Lookahead:
 
     @staticmethod
     def replay(chosen: np.ndarray, env: TangramEnv) -> Actor:
-        """An actor that plays a plan (n, pieces, 3) through :func:`mrchaos.learn.evaluate.evaluate`
-        on ``env``."""
+        """An actor that plays a plan (n, pieces, 3 or 4) through
+        :func:`mrchaos.learn.evaluate.evaluate` on ``env``."""
         n, nw, p = len(chosen), env.batch_size[0], env.num_pieces
         calls = itertools.count()  # evaluate asks step by step, chunk by chunk
 

@@ -263,6 +263,11 @@ class GridCategorical(Distribution):
         _, y, x = self.grid_shape
         return self.mode_scores.gather(-1, ravel_actions(actions, x, y))
 
+    def top_actions(self, k: int) -> torch.Tensor:
+        """(..., k, event) the actions of :meth:`top_modes`, best first (with free order, the piece
+        is part of each)."""
+        return self._unravel(self.top_modes(k))
+
     def top_modes(self, k: int) -> torch.Tensor:
         """(..., k) flat indices of the ``k`` best actions in the policy's order, the mode first.
 

@@ -46,7 +46,7 @@ from mrchaos.learn.checkpoint import (
 )
 from mrchaos.learn.config import RerankConfig, TrainConfig, config_to_dict, load_config, start_run
 from mrchaos.learn.evaluate import evaluate_random, policy_device
-from mrchaos.learn.policy import GridCategorical, PolicyConfig, build_actor_critic, unravel_actions
+from mrchaos.learn.policy import GridCategorical, PolicyConfig, build_actor_critic
 
 __all__ = [
     "AfterstateRanker",
@@ -198,8 +198,7 @@ class Reranked:
             dist = self.policy.get_dist(TensorDict(observation=obs, batch_size=[len(obs)]))
             if not isinstance(dist, GridCategorical):
                 raise ValueError("a re-ranker needs a spatial policy (one score per grid action)")
-            _, y, x = dist.grid_shape
-            cand = unravel_actions(dist.top_modes(self.k), x, y)
+            cand = dist.top_actions(self.k)
             piece = torch.as_tensor(env.next_piece).clamp_max(env.num_pieces - 1)
             foot = candidate_footprints(env.piece_set, env.grid, env.view, cand, piece).to(device)
             return cand, self.ranker(obs, foot, dist.scores_at(cand))

@@ -70,11 +70,14 @@ class PlacementResult:
     Attributes:
         physics: True where physics ran (the footprint was not free, or the robot placed it).
         penetration: how deep the placed piece ends inside another (m), >= 0.
+        onto: True where the commanded footprint lay on a placed piece deeper than a sliver
+            (``push_depth``): the piece was set down onto another, whatever then happened.
         robot: what the robot did, with robot placement; None with teleport.
     """
 
     physics: np.ndarray
     penetration: np.ndarray
+    onto: np.ndarray
     robot: ExecutionResult | None = None
 
 
@@ -259,8 +262,9 @@ class Worlds:
         others[np.arange(m), piece] = False
         depth = self._piece_depth(foot, rows)  # (m, P)
         under = others & (depth > self.cfg.free_tolerance)
+        onto = (under & (depth > self.cfg.push_depth)).any(1)
         if self.executor is not None:
-            return self._place_robot(rows, piece, pose, under, depth, mirrored)
+            return self._place_robot(rows, piece, pose, under, depth, mirrored, onto)
         free = ~under.any(1)
         half = self._thick[piece] / 2
         # Fast path: the piece lands flat on the table, exactly where a settle would put it.
@@ -304,7 +308,7 @@ class Worlds:
         penetration = np.zeros(m)
         if len(ph):  # a free footprint cannot end inside anything
             penetration[ph] = self._penetration(rows[ph], piece[ph])
-        return PlacementResult(physics=~free, penetration=penetration)
+        return PlacementResult(physics=~free, penetration=penetration, onto=onto)
 
     def push(self, rows: np.ndarray, piece: np.ndarray, displacement: np.ndarray, seconds: float = 0.6) -> None:
         """Shove ``piece[i]`` of world ``rows[i]`` along ``displacement[i]`` (m, planar), as a flick would.
@@ -331,6 +335,7 @@ class Worlds:
         under: np.ndarray,
         depth: np.ndarray,
         mirrored: np.ndarray | None,
+        onto: np.ndarray,
     ) -> PlacementResult:
         """The robot places the pieces; the release height clears what lies under the target. A piece
         to go down mirrored is first set on the flip fixture, turned over, and picked up again."""
@@ -362,7 +367,7 @@ class Worlds:
         self._refresh(rows)
         self.count_physics += len(rows)
         return PlacementResult(
-            physics=np.ones(len(rows), dtype=bool), penetration=self._penetration(rows, piece), robot=res
+            physics=np.ones(len(rows), dtype=bool), penetration=self._penetration(rows, piece), onto=onto, robot=res
         )
 
     def _penetration(self, rows: np.ndarray, piece: np.ndarray) -> np.ndarray:
@@ -400,6 +405,11 @@ class Worlds:
         return rasterize(
             fp, view, visible=self.placed[sel], heights=self.top[sel], need_height=need_height, parts=self._raster_parts
         )
+
+    def off_table(self) -> np.ndarray:
+        """(N, P) bool: placed pieces that do not lie flat on the table, their top more than half a
+        thickness above a flat piece's (stacked on another, or leaning on one)."""
+        return self.placed & (self.top > 1.5 * self._thick[None, :])
 
     @property
     def physics_share(self) -> float:
