@@ -355,10 +355,10 @@ def test_a_seconds_long_free_order_dense_run_is_benched_in_free_order(tmp_path: 
         str(root / "conf" / "dense.yaml"),
         f"runs_dir={tmp_path}",
         "env.order=free",
-        "bc.objects=32",
+        "bc.objects=16",
         "bc.epochs=3",
         "bc.dagger_rounds=1",
-        "bc.dagger_objects=16",
+        "bc.dagger_objects=8",
         "bc.dagger_epochs=1",
         "env.num_worlds=16",
         "precision=fp32",
@@ -373,7 +373,7 @@ def test_a_seconds_long_free_order_dense_run_is_benched_in_free_order(tmp_path: 
         rows = list(csv.DictReader(f))
     assert [r["round"] for r in rows] == ["0", "0", "0", "1"] and float(rows[2]["loss"]) < float(rows[0]["loss"])
     shard = torch.load(run / "data" / "round_0.pt", weights_only=True)
-    assert shard["label"].shape == (32 * 7, 256) and shard["remaining"].shape == (32 * 7, 7)
+    assert shard["label"].shape == (16 * 7, 256) and shard["remaining"].shape == (16 * 7, 7)
     # Random-order demonstrations: the first states' choosable pieces are every twin group.
     assert shard["choosable"][:16].sum(1).eq(5).all()
     out = tmp_path / "bench"
