@@ -262,9 +262,9 @@ class Worlds:
         others[np.arange(m), piece] = False
         depth = self._piece_depth(foot, rows)  # (m, P)
         under = others & (depth > self.cfg.free_tolerance)
-        onto = (under & (depth > self.cfg.push_depth)).any(1)
         if self.executor is not None:
-            return self._place_robot(rows, piece, pose, under, depth, mirrored, onto)
+            return self._place_robot(rows, piece, pose, under, depth, mirrored)
+        onto = (under & (depth > self.cfg.push_depth)).any(1)
         free = ~under.any(1)
         half = self._thick[piece] / 2
         # Fast path: the piece lands flat on the table, exactly where a settle would put it.
@@ -335,7 +335,6 @@ class Worlds:
         under: np.ndarray,
         depth: np.ndarray,
         mirrored: np.ndarray | None,
-        onto: np.ndarray,
     ) -> PlacementResult:
         """The robot places the pieces; the release height clears what lies under the target. A piece
         to go down mirrored is first set on the flip fixture, turned over, and picked up again."""
@@ -367,7 +366,10 @@ class Worlds:
         self._refresh(rows)
         self.count_physics += len(rows)
         return PlacementResult(
-            physics=np.ones(len(rows), dtype=bool), penetration=self._penetration(rows, piece), onto=onto, robot=res
+            physics=np.ones(len(rows), dtype=bool),
+            penetration=self._penetration(rows, piece),
+            onto=deep.any(1),
+            robot=res,
         )
 
     def _penetration(self, rows: np.ndarray, piece: np.ndarray) -> np.ndarray:
