@@ -93,10 +93,12 @@ def augment(
 _MASKED = 255
 
 
-def _dense_label(env: TangramEnv, overlap_limit: float, rows: np.ndarray | None = None) -> torch.Tensor:
+def _dense_label(
+    env: TangramEnv, overlap_limit: float, rows: np.ndarray | None = None, piece: np.ndarray | None = None
+) -> torch.Tensor:
     """(N, T, Y, X) uint8 counterfactual coverage of every action (of worlds ``rows``, default
-    all), 255 where the footprint overlaps."""
-    cov, overlap = env.counterfactual(rows)
+    all; of ``piece`` (N,), which free order needs), 255 where the footprint overlaps."""
+    cov, overlap = env.counterfactual(rows, piece)
     q = (cov * 254).round().to(torch.uint8)
     q[overlap > overlap_limit] = _MASKED
     return q
@@ -130,9 +132,8 @@ def free_label(
     q = torch.full((len(r), env.num_pieces * per), -1, dtype=torch.int16)
     for p in np.flatnonzero(ok.any(0)):
         sel = np.flatnonzero(ok[:, p])
-        cov, overlap = env.counterfactual(r[sel], piece=np.full(n, p))
-        c = (cov.flatten(1) * 254).round().to(torch.int16)
-        q[torch.as_tensor(sel), p * per : (p + 1) * per] = torch.where(overlap.flatten(1) > overlap_limit, -1, c)
+        c = _dense_label(env, overlap_limit, r[sel], np.full(n, p)).flatten(1).to(torch.int16)
+        q[torch.as_tensor(sel), p * per : (p + 1) * per] = torch.where(c == _MASKED, -1, c)
     val, idx = q.topk(top, -1)
     allowed = q >= 0
     logits = torch.where(allowed, q.float() / 254 / temperature, -torch.inf)

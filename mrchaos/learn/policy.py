@@ -164,9 +164,12 @@ MASKED_LOGIT = -1e9
 
 
 def mask_pieces(logits: torch.Tensor, mask: torch.Tensor, per_piece: int = 1) -> torch.Tensor:
-    """``logits`` (B, P * per_piece, ...) with the channels of pieces that ``mask`` (B, P) bool
-    forbids set to :data:`MASKED_LOGIT` (in fp32)."""
-    b, p = mask.shape
+    """``logits`` (B, P * per_piece, ...) with the channels of pieces that ``mask`` forbids set to
+    :data:`MASKED_LOGIT` (in fp32). ``mask`` is (..., P) bool, or a whole free-order action mask
+    (..., P + X + Y + O), whose first P entries are the pieces'."""
+    p = logits.shape[1] // per_piece
+    mask = mask.reshape(-1, mask.shape[-1])[:, :p]
+    b = mask.shape[0]
     keep = mask.repeat_interleave(per_piece, 1).reshape(b, p * per_piece, *([1] * (logits.dim() - 2)))
     return torch.where(keep, logits.float(), torch.full((), MASKED_LOGIT))
 
@@ -373,8 +376,7 @@ class PaperHeads(nn.Module):
             return self.x(h), self.y(h), self.t(h)
         assert action_mask is not None  # free order's modules read it (build_actor_critic)
         lead = h.shape[:-1]
-        mask = action_mask.reshape(-1, action_mask.shape[-1])[:, : self.pieces]
-        piece = mask_pieces(self.p(h).reshape(-1, self.pieces), mask).reshape(*lead, self.pieces)
+        piece = mask_pieces(self.p(h).reshape(-1, self.pieces), action_mask).reshape(*lead, self.pieces)
         return self.x(h), self.y(h), self.t(h), piece
 
 
@@ -492,8 +494,7 @@ class SpatialHead(nn.Module):
         out = self.wy.to(logits.dtype) @ logits @ self.wx.to(logits.dtype).T  # (B, T, Y, X)
         if self.pieces:
             assert action_mask is not None  # free order's modules read it (build_actor_critic)
-            mask = action_mask.reshape(-1, action_mask.shape[-1])[:, : self.pieces]
-            out = mask_pieces(out, mask, self.norient)
+            out = mask_pieces(out, action_mask, self.norient)
         return out.reshape(*lead, *out.shape[1:])
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):

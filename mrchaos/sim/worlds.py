@@ -368,7 +368,7 @@ class Worlds:
         return PlacementResult(
             physics=np.ones(len(rows), dtype=bool),
             penetration=self._penetration(rows, piece),
-            onto=deep.any(1),
+            onto=np.asarray(deep.any(1)),  # (m,) bool: numpy types any() as bool or array
             robot=res,
         )
 
