@@ -88,3 +88,21 @@ def test_the_workstation_check_starts_nothing_past_its_budget(workstation, tmp_p
     report = json.loads((tmp_path / "workstation.json").read_text())
     assert "cpu spatial sync x1" in report["skipped_settings"] and len(report["skipped_settings"]) == 6 + 4
     assert "over the 0-minute budget, not measured: cpu spatial sync x1" in capsys.readouterr().out
+
+
+def test_the_face_is_open_only_where_the_last_slots_also_tile_with_the_piece_turned_over(monkeypatch):
+    """benchmarks/flip_faces.py's tiling search: a rectangle of the parallelogram and two small
+    triangles tiles with either face, the classic square's last four slots with its own face only,
+    and a figure's mirror image gives the same answer."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    import flip_faces
+
+    from mrchaos.figures.figure import mirror_figure
+    from mrchaos.figures.library import builtin_figures
+
+    figs = {f.id: f for f in builtin_figures()}
+    assert flip_faces.face_open(figs["rectangle"]) == {3: True}
+    assert flip_faces.face_open(figs["square"]) == {3: False}
+    assert flip_faces.face_open(mirror_figure(figs["square"])) == {3: False}
+    assert flip_faces.face_open(mirror_figure(figs["rectangle"])) == {3: True}
+    sys.modules.pop("flip_faces", None)
