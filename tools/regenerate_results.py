@@ -69,7 +69,7 @@ TABLES: dict[str, list[str]] = {
     # docs/free-order.md: the free-order policy beside its fixed-order twin (the same recipe and
     # data), placed by teleport and by the simulated UR5e (collisions and stacking).
     "free": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--policy", "mrchaos-free",
-             "--policy", "mrchaos-fixed-twin", "--policy", "mrchaos-dense"],
+             "--policy", "mrchaos-fixed-twin", "--policy", "mrchaos-dense", "--policy", "mrchaos-dense-ppo"],
     "free_robot": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--placement", "robot",
                    "--policy", "mrchaos-free", "--policy", "mrchaos-fixed-twin"],
 }  # fmt: skip
