@@ -134,7 +134,8 @@ def _orientations(shape: Polygon) -> list[Polygon]:
 def _tiles(region, shapes: list[list[Polygon]], budget: list[int]) -> bool:
     """Whether ``region`` is tiled exactly by one of each of ``shapes`` (each given in its
     orientations). Some piece must have a vertex on the region's lowest corner, so only those
-    placements are tried (complete for the tangram's 45-degree pieces); ``budget`` caps the search."""
+    placements are tried, each turned in 45-degree steps from its slot (complete where, as in the
+    tangram's figures, the pieces lie at 45-degree steps to one another); ``budget`` caps the search."""
     parts = [g for g in getattr(region, "geoms", [region]) if g.geom_type == "Polygon" and g.area > 2e-6]
     if not shapes or not parts:
         return not shapes and not parts

@@ -67,7 +67,8 @@ TABLES: dict[str, list[str]] = {
     "flip_mirrored": ["--families", "all", "--figures", "{mirrored}", "--flip", "--policy", "mrchaos-flip",
                       "--policy", "mrchaos"],
     # docs/free-order.md: the free-order policy beside its fixed-order twin (the same recipe and
-    # data), placed by teleport and by the simulated UR5e (collisions and stacking).
+    # data) and two set's-order policies (mrchaos-dense-ppo of about its minutes), placed by
+    # teleport and by the simulated UR5e (collisions and stacking).
     "free": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--policy", "mrchaos-free",
              "--policy", "mrchaos-fixed-twin", "--policy", "mrchaos-dense", "--policy", "mrchaos-dense-ppo"],
     "free_robot": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--placement", "robot",
