@@ -15,6 +15,7 @@ from torchrl.envs.utils import check_env_specs
 from mrchaos.env.oracle import oracle_actions, oracle_poses, random_pieces
 from mrchaos.env.tangram import EnvConfig, TangramEnv
 from mrchaos.learn.evaluate import evaluate
+from mrchaos.sim.worlds import PhysicsConfig
 from mrchaos.tasks.chaos import ChaosConfig, generate
 
 
@@ -98,6 +99,18 @@ def test_free_order_oracles_on_mrchaos104(mrchaos104) -> None:
     # overlap by a sliver go through physics, which nudges a piece by a fraction of a millimetre.
     final = out["info", "final"][:, 0]
     assert final.mean() >= 0.995 and final.min() >= 0.98, (final.mean(), final.min())
+    # Those nudges come from the drawings' few-micrometre seams: let them count as touching and
+    # every figure ends at 0.99 or more but one whose pieces overlap by about 1 mm^2 in the drawing
+    # (pose-10). The default keeps 1 um, which every fixed-order result was measured with.
+    loose = _env(n=len(figs), physics=PhysicsConfig(free_tolerance=1e-5))
+    loose.reset_to(targets)
+    g_loose = torch.Generator().manual_seed(0)
+    for _ in range(loose.num_pieces):
+        piece = random_pieces(loose, g_loose)
+        out = loose.place_poses(*oracle_poses(loose, piece), piece=piece)
+    low = out["info", "final"][:, 0].numpy() < 0.99
+    drawn = np.array([f.overlap_area() for f in figs])
+    assert low.sum() <= 1 and (drawn[low] > 0.9e-6).all(), [f.id for f, x in zip(figs, low, strict=True) if x]
     free = evaluate(env, targets, lambda e, td: oracle_actions(e, random_pieces(e, g)))
     fixed = evaluate(TangramEnv(EnvConfig(num_worlds=len(figs)), seed=0), targets, lambda e, td: oracle_actions(e))
     assert not (free.order == np.arange(7)).all(1).all()
