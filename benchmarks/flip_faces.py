@@ -29,7 +29,7 @@ from shapely.ops import unary_union
 
 from mrchaos.bench.benchmark import Bench, resolve_policy
 from mrchaos.env.oracle import oracle_actions
-from mrchaos.figures.figure import Figure
+from mrchaos.figures.figure import Figure, FigureSet
 from mrchaos.figures.formats import load_figures
 from mrchaos.learn.evaluate import evaluate
 from mrchaos.learn.planner import Lookahead
@@ -41,7 +41,7 @@ _SEAM, _SLIVER, _OUTSIDE = 2e-4, 3e-4, 0.01
 
 
 def face_choices(
-    figures: str | None,
+    figures: FigureSet | None,
     policy: str,
     chaos: int = 0,
     seed: int = 7,
@@ -57,7 +57,7 @@ def face_choices(
         bench = Bench(None, ["Random"], chaos, seed, flip=True, random_mirror=0.5, lookahead=lookahead)
     else:
         families = ["H-Normal", "H-Hard", "H-Fiendish"]
-        bench = Bench([load_figures(figures)], families, 0, 0, flip=True, lookahead=lookahead)
+        bench = Bench([figures], families, 0, 0, flip=True, lookahead=lookahead)
     spec = resolve_policy(policy)
     env = bench.make_env(spec)
     actor = bench.actor(spec, env)
@@ -102,10 +102,10 @@ def _oracle_first(actor, steps: int, pieces: int):
     return act
 
 
-def outline_exposure(figures: str) -> np.ndarray:
+def outline_exposure(figures: FigureSet) -> np.ndarray:
     """For every chiral piece of every figure: the share of its outline on the silhouette's outline."""
     out = []
-    for f in load_figures(figures).figures:
+    for f in figures.figures:
         polys = [Polygon(f.piece_polygon(i)) for i in range(len(f.poses))]
         # Close the seams between touching pieces (0.2 mm), then measure within 0.5 mm of the outline.
         sil = _union(polys)
@@ -201,19 +201,20 @@ def main() -> None:
         want, got, _ = face_choices(None, args.policy, args.chaos, args.seed, args.lookahead, args.exact_before)
         print(f"{args.chaos} chaos objects (seed {args.seed}): {_report(label, want, got)}")
     for path in args.figures:
-        e = outline_exposure(path)
+        figures = load_figures(path)
+        e = outline_exposure(figures)
         print(
             f"{path}: the silhouette's outline holds {np.median(e):.0%} of a chiral piece's outline (median; "
             f"10 % of pieces show {np.quantile(e, 0.1):.0%} or less, {np.mean(e < 0.25):.0%} show under a quarter)"
         )
-        opened = {f.id: face_open(f) for f in load_figures(path).figures}
+        opened = {f.id: face_open(f) for f in figures.figures}
         open_ids = {fid for fid, d in opened.items() if any(d.values())}
         unknown = sum(any(v is None for v in d.values()) for d in opened.values())
         print(
             f"{path}: in {len(open_ids)} of {len(opened)} figures the slots left when the chiral piece is placed "
             f"also tile with it turned over ({unknown} not decided: seams too wide or search too long)"
         )
-        want, got, ids = face_choices(path, args.policy, lookahead=args.lookahead, exact_before=args.exact_before)
+        want, got, ids = face_choices(figures, args.policy, lookahead=args.lookahead, exact_before=args.exact_before)
         print(f"{path}: {_report(label, want, got)}")
         amb = np.array([i in open_ids for i in ids], dtype=bool)
         right = got == want

@@ -23,6 +23,20 @@ def _env(n: int = 4, **kw) -> TangramEnv:
     return TangramEnv(EnvConfig(num_worlds=n, order="free", **kw), seed=0)
 
 
+def _exact_in_random_orders(
+    env: TangramEnv, targets: np.ndarray, g: torch.Generator, mirrored: np.ndarray | None = None
+) -> tuple[TensorDict, np.ndarray]:
+    """Every world assembled by the exact oracle in an order drawn from ``g``: the last step's
+    output and the (N, P) order."""
+    env.reset_to(targets, mirrored)
+    order = []
+    for _ in range(env.num_pieces):
+        piece = random_pieces(env, g)
+        order.append(piece)
+        out = env.place_poses(*oracle_poses(env, piece), piece=piece)
+    return out, np.stack(order, 1)
+
+
 def test_fixed_order_keeps_its_specs_and_free_order_adds_the_mask_and_the_pieces_left() -> None:
     fixed = TangramEnv(EnvConfig(num_worlds=2), seed=0)
     assert fixed.action_spec.shape == (2, 3)
@@ -64,14 +78,7 @@ def test_the_exact_oracle_assembles_chaos_objects_in_random_orders_and_every_ord
     n = 24
     env = _env(n=n)
     targets, _, mirrored = generate(env.piece_set, n, np.random.default_rng(5), ChaosConfig(), env.view)
-    env.reset_to(targets, mirrored)
-    g = torch.Generator().manual_seed(1)
-    order = []
-    for _ in range(env.num_pieces):
-        piece = random_pieces(env, g)
-        order.append(piece)
-        out = env.place_poses(*oracle_poses(env, piece), piece=piece)
-    order = np.stack(order, 1)
+    out, order = _exact_in_random_orders(env, targets, torch.Generator().manual_seed(1), mirrored)
     assert out["done"].all() and (out["info", "final"] > 0.99).all()
     # Every piece once; twins in set order; not all worlds in the fixed order.
     assert (np.sort(order, 1) == np.arange(env.num_pieces)).all()
@@ -91,10 +98,7 @@ def test_free_order_oracles_on_mrchaos104(mrchaos104) -> None:
     fam = np.array([f.family for f in figs])
     env = _env(n=len(figs))
     g = torch.Generator().manual_seed(0)
-    env.reset_to(targets)
-    for _ in range(env.num_pieces):
-        piece = random_pieces(env, g)
-        out = env.place_poses(*oracle_poses(env, piece), piece=piece)
+    out, _ = _exact_in_random_orders(env, targets, g)
     # As in the set's order (mean 0.999, two figures at 0.987): touching slots whose exact poses
     # overlap by a sliver go through physics, which nudges a piece by a fraction of a millimetre.
     final = out["info", "final"][:, 0]
@@ -103,11 +107,7 @@ def test_free_order_oracles_on_mrchaos104(mrchaos104) -> None:
     # every figure ends at 0.99 or more but one whose pieces overlap by about 1 mm^2 in the drawing
     # (pose-10). The default keeps 1 um, which every fixed-order result was measured with.
     loose = _env(n=len(figs), physics=PhysicsConfig(free_tolerance=1e-5))
-    loose.reset_to(targets)
-    g_loose = torch.Generator().manual_seed(0)
-    for _ in range(loose.num_pieces):
-        piece = random_pieces(loose, g_loose)
-        out = loose.place_poses(*oracle_poses(loose, piece), piece=piece)
+    out, _ = _exact_in_random_orders(loose, targets, torch.Generator().manual_seed(0))
     low = out["info", "final"][:, 0].numpy() < 0.99
     drawn = np.array([f.overlap_area() for f in figs])
     assert low.sum() <= 1 and (drawn[low] > 0.9e-6).all(), [f.id for f, x in zip(figs, low, strict=True) if x]
