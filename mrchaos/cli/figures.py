@@ -99,12 +99,13 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 def cmd_chaos(args: argparse.Namespace) -> int:
     from mrchaos.figures.pieces import get_piece_set
-    from mrchaos.tasks.chaos import ChaosCache, ChaosConfig
+    from mrchaos.tasks.chaos import MODES, ChaosCache, ChaosConfig
 
-    cfg = ChaosConfig(mode=args.mode)
+    cfg = ChaosConfig(mode=args.mode, tile_fraction=args.tile_fraction)
     cache = ChaosCache.build(get_piece_set(args.piece_set), args.n, args.seed, cfg)
     cache.save(args.out)
-    print(f"wrote {args.out}: {len(cache)} objects ({int((cache.modes == 1).sum())} attract), seed {args.seed}")
+    counts = ", ".join(f"{int((cache.modes == m).sum())} {name}" for m, name in enumerate(MODES))
+    print(f"wrote {args.out}: {len(cache)} objects ({counts}), seed {args.seed}")
     return 0
 
 
@@ -139,7 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("chaos", help="pre-generate a cache of chaos objects (.npz)")
     s.add_argument("--n", type=int, default=4096)
     s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--mode", default="mix", choices=["scatter", "attract", "mix"])
+    s.add_argument("--mode", default="mix", choices=["scatter", "attract", "tile", "mix"])
+    s.add_argument("--tile-fraction", type=float, default=0.0, help="share of tile objects under --mode mix")
     s.add_argument(
         "--piece-set", default="tangram7", help=f"a registered piece set ({', '.join(piece_set_names())}, or your own)"
     )

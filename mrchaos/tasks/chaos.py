@@ -1,6 +1,6 @@
 """Chaos objects: random target assemblies, the only thing the policy trains on.
 
-Two generators, as in MRChaos:
+Three generators: two as in MRChaos, and one that joins pieces edge to edge as people do:
 
 * ``scatter``: every piece at a uniformly random pose, no two overlapping, all
   inside the camera view (rejection sampling, vectorised over the batch);
@@ -8,7 +8,9 @@ Two generators, as in MRChaos:
   touches the others, giving compact, touching, non-overlapping clusters. The pull
   is a kinematic relaxation: a piece moves toward the point (or slides along the
   axes when blocked) only if the move keeps it clear of every other piece, and the
-  step halves when nothing can move, down to ``contact_gap``.
+  step halves when nothing can move, down to ``contact_gap``;
+* ``tile``: pieces laid edge on edge, vertex on vertex, at the grid's angles, grown piece by
+  piece (:mod:`mrchaos.tasks.tiling`).
 
 A :class:`ChaosCache` stores pre-generated objects so a training run draws them
 instead of paying the generation cost every episode.
@@ -27,10 +29,12 @@ import numpy as np
 from mrchaos.core.geometry import convex_penetration, rigid_transform
 from mrchaos.core.raster import View
 from mrchaos.figures.pieces import PieceSet
+from mrchaos.tasks.tiling import TileKnobs, tile_objects
 
-__all__ = ["ChaosConfig", "scatter", "attract", "generate", "ChaosCache", "MODES"]
+__all__ = ["ChaosConfig", "scatter", "attract", "tile", "generate", "ChaosCache", "MODES"]
 
-MODES = ("scatter", "attract")
+#: The generators, by the mode index a cache stores.
+MODES = ("scatter", "attract", "tile")
 
 
 @dataclass(frozen=True)
@@ -38,8 +42,11 @@ class ChaosConfig:
     """How random objects are drawn.
 
     Attributes:
-        mode: "scatter", "attract" or "mix" (each object attract with ``attract_fraction``).
+        mode: "scatter", "attract", "tile" or "mix" (each object attract with
+            ``attract_fraction``, tile with ``tile_fraction``, scatter otherwise).
         attract_fraction: share of attract objects under "mix" (the paper uses half).
+        tile_fraction: share of tile (edge-joined) objects under "mix"; with
+            ``attract_fraction`` at most 1.
         workspace: piece centroids are drawn in [-workspace, workspace]^2 (m).
         margin: every vertex stays this far (m) inside the camera view, so the whole object is seen.
         angle_step: rotations are multiples of this (rad); 0 draws continuous angles.
@@ -48,6 +55,11 @@ class ChaosConfig:
         max_tries: rejection-sampling rounds per piece before giving up.
         mirror_prob: chance that a chiral piece lies turned over (its mirror image), so that a
             policy with a flip must read the face from the silhouette; 0 keeps every piece face up.
+        tile_compactness: ``tile`` objects draw their compactness in [0, this]: how strongly a
+            piece prefers the joint that shares the most outline (0: any joint alike).
+        tile_limbs: ``tile`` objects draw their limb share in [0, this]: the chance that a piece
+            after the second joins by the least outline, or vertex on vertex.
+        tile_hole_prob: chance that a ``tile`` object may enclose empty regions.
     """
 
     mode: str = "mix"
@@ -58,14 +70,24 @@ class ChaosConfig:
     contact_gap: float = 2e-4
     max_tries: int = 200
     mirror_prob: float = 0.0
+    tile_fraction: float = 0.0
+    tile_compactness: float = 6.0
+    tile_limbs: float = 0.3
+    tile_hole_prob: float = 0.2
 
     def __post_init__(self) -> None:
         if self.mode not in MODES + ("mix",):
             raise ValueError(f"chaos mode must be one of {MODES + ('mix',)}, got {self.mode!r}")
-        if not 0.0 <= self.attract_fraction <= 1.0:
-            raise ValueError(f"attract_fraction must be in [0, 1], got {self.attract_fraction}")
-        if not 0.0 <= self.mirror_prob <= 1.0:
-            raise ValueError(f"mirror_prob must be in [0, 1], got {self.mirror_prob}")
+        for name in ("attract_fraction", "tile_fraction", "mirror_prob", "tile_limbs", "tile_hole_prob"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"task.chaos.{name} must be in [0, 1], got {getattr(self, name)}")
+        if self.attract_fraction + self.tile_fraction > 1.0 + 1e-12:
+            raise ValueError(
+                f"task.chaos.attract_fraction + tile_fraction must be at most 1, got "
+                f"{self.attract_fraction} + {self.tile_fraction}"
+            )
+        if self.tile_compactness < 0:
+            raise ValueError(f"task.chaos.tile_compactness must be >= 0, got {self.tile_compactness}")
 
     def bound(self, view: View) -> float:
         """Largest |x| or |y| (m) a vertex may reach in ``view``."""
@@ -170,6 +192,20 @@ def attract(
     return poses
 
 
+def tile(
+    piece_set: PieceSet,
+    n: int,
+    rng: np.random.Generator,
+    cfg: ChaosConfig = ChaosConfig(),
+    view: View = View(),
+    mirrored: np.ndarray | None = None,
+) -> np.ndarray:
+    """(n, P, 3) poses: pieces laid edge on edge at the grid's angles, grown piece by piece
+    (:mod:`mrchaos.tasks.tiling`), centred, inside the view; ``mirrored`` (n, P) bool."""
+    knobs = TileKnobs(cfg.tile_compactness, cfg.tile_limbs, cfg.tile_hole_prob)
+    return tile_objects(piece_set, n, rng, knobs, cfg.angle_step, 2 * cfg.bound(view), cfg.max_tries, mirrored)
+
+
 def _object_parts(piece_set: PieceSet, n: int, mirrored: np.ndarray | None) -> np.ndarray:
     """(n, P, K, V, 2) convex parts of every piece of n objects, mirrored where ``mirrored`` (n, P)."""
     p, k = len(piece_set), piece_set.parts_per_piece
@@ -190,19 +226,20 @@ def _clear(poly: np.ndarray, others: np.ndarray) -> np.ndarray:
 def generate(
     piece_set: PieceSet, n: int, rng: np.random.Generator, cfg: ChaosConfig = ChaosConfig(), view: View = View()
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(n, P, 3) poses, (n,) int8 mode index (0 scatter, 1 attract) and (n, P) bool mirrored
+    """(n, P, 3) poses, (n,) int8 mode index (into :data:`MODES`) and (n, P) bool mirrored
     (chiral pieces turned over), drawn as ``cfg`` says, inside ``view``."""
-    if cfg.mode == "scatter":
-        modes = np.zeros(n, dtype=np.int8)
-    elif cfg.mode == "attract":
-        modes = np.ones(n, dtype=np.int8)
+    if cfg.mode in MODES:
+        modes = np.full(n, MODES.index(cfg.mode), dtype=np.int8)
     else:
-        modes = (rng.random(n) < cfg.attract_fraction).astype(np.int8)
+        # One uniform per object: with no tile share, the draw is the same as before tile existed.
+        u = rng.random(n)
+        modes = np.where(u < cfg.attract_fraction, 1, np.where(u < cfg.attract_fraction + cfg.tile_fraction, 2, 0))
+        modes = modes.astype(np.int8)
     mirrored = np.zeros((n, len(piece_set)), dtype=bool)
     if cfg.mirror_prob > 0:  # no draw otherwise, so that objects without mirroring stay as they were
         mirrored = (rng.random((n, len(piece_set))) < cfg.mirror_prob) & piece_set.chiral
     poses = np.zeros((n, len(piece_set), 3))
-    generators: tuple[Callable[..., np.ndarray], ...] = (scatter, attract)
+    generators: tuple[Callable[..., np.ndarray], ...] = (scatter, attract, tile)
     for m, fn in enumerate(generators):
         idx = np.flatnonzero(modes == m)
         if len(idx):
@@ -215,7 +252,7 @@ class ChaosCache:
 
     Args:
         poses: (N, P, 3) target poses.
-        modes: (N,) generator index per object (0 scatter, 1 attract).
+        modes: (N,) generator index per object, into :data:`MODES`.
         piece_set: name of the piece set the poses belong to.
         mirrored: (N, P) bool, pieces lying turned over (default: none; caches written before
             the flip have no such array).
