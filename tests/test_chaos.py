@@ -173,3 +173,15 @@ def test_tile_holes_only_when_allowed():
 
     assert holes(ChaosConfig(mode="tile", tile_hole_prob=0.0)) == 0
     assert holes(ChaosConfig(mode="tile", tile_hole_prob=1.0, tile_compactness=10.0)) > 0
+
+
+def test_a_cache_of_other_generators_is_refused(tmp_path):
+    from mrchaos.tasks.sampler import CacheConfig, MixConfig, TargetSampler, TaskConfig
+
+    path = tmp_path / "mix.npz"
+    ChaosCache.build(PS, 12, seed=2).save(path)  # scatter and attract, no tile
+    mix = MixConfig(chaos=0.0, cache=1.0)
+    assert len(TargetSampler(PS, TaskConfig(mix=mix, cache=CacheConfig(path=str(path)))).cache) == 12
+    for chaos in (ChaosConfig(mode="mix", tile_fraction=0.3), ChaosConfig(mode="tile")):
+        with pytest.raises(ValueError, match="mix.npz: chaos cache holds scatter, attract objects"):
+            TargetSampler(PS, TaskConfig(mix=mix, chaos=chaos, cache=CacheConfig(path=str(path))))

@@ -187,3 +187,60 @@ def test_grid_categorical_fused_log_prob_and_entropy_gradients():
     assert torch.allclose(g, z.grad, atol=1e-6)
     with torch.no_grad():
         assert torch.allclose(d.log_prob(a), lp_ref, atol=1e-6)
+
+
+@pytest.mark.parametrize("block", ["attention", "unet"])
+def test_global_view_starts_as_the_plain_net_and_reaches_across_the_view(block):
+    """A global block is switched off at the start (the same logits as the net without it, given
+    the same weights); switched on, a logit at the centre sees a far corner without the context
+    path or the FiLM."""
+    torch.manual_seed(0)
+    grid, view = ActionGrid(), View()
+    small = dict(channels=[8, 8, 8], hidden=16, global_width=16, global_layers=1)
+    plain = build_actor_critic(PolicyConfig(**small), grid, view)
+    ac = build_actor_critic(PolicyConfig(global_view=block, **small), grid, view)
+    missing = ac.load_state_dict(plain.state_dict(), strict=False).missing_keys
+    assert missing and all("global_view" in k for k in missing)
+    obs = torch.randint(0, 256, (1, 2, 120, 120), dtype=torch.uint8)
+
+    def scores(net, o):
+        with torch.no_grad():
+            d = net.get_policy_operator().get_dist(TensorDict(observation=o, batch_size=[1]))
+        return d.scores.view(1, grid.norient, grid.ny, grid.nx)
+
+    assert torch.allclose(scores(ac, obs), scores(plain, obs), atol=1e-6)
+    trunk = next(m for m in ac.modules() if isinstance(m, SpatialTrunk))
+    with torch.no_grad():
+        trunk.film.weight.zero_()
+        trunk.film.bias.zero_()
+        trunk.global_view.out.weight.normal_()
+    far = obs.clone()
+    far[0, :, -8:, -8:] = 255 - far[0, :, -8:, -8:]
+    cy, cx = grid.ny // 2, grid.nx // 2
+    centre = (scores(ac, obs) - scores(ac, far))[..., cy - 1 : cy + 2, cx - 1 : cx + 2].abs().max().item()
+    assert centre > 1e-6
+
+
+def test_coordinate_channels_tell_positions_apart():
+    """Without coordinates a convolution answers an empty image alike everywhere inside the
+    border; with them the same empty image gets position-dependent logits."""
+    torch.manual_seed(0)
+    grid, view = ActionGrid(), View()
+    obs = torch.zeros(1, 2, 120, 120, dtype=torch.uint8)
+    spread = []
+    for coords in (False, True):
+        ac = build_actor_critic(PolicyConfig(channels=[8, 8, 8], hidden=16, coords=coords), grid, view)
+        with torch.no_grad():
+            s = ac.get_policy_operator().get_dist(TensorDict(observation=obs, batch_size=[1])).scores
+        inner = s.view(grid.norient, grid.ny, grid.nx)[:, 15:-15, 15:-15]
+        spread.append((inner.amax((-2, -1)) - inner.amin((-2, -1))).max().item())
+    assert spread[0] < 1e-5 < spread[1]
+
+
+def test_global_view_config_errors():
+    with pytest.raises(ValueError, match="global_view"):
+        PolicyConfig(global_view="mamba")
+    with pytest.raises(ValueError, match="spatial"):
+        PolicyConfig(name="paper", global_view="unet")
+    with pytest.raises(ValueError, match="global_width"):
+        PolicyConfig(global_view="attention", global_width=0)

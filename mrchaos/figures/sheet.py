@@ -17,7 +17,7 @@ from PIL import Image, ImageDraw
 
 from mrchaos.core.raster import View
 
-__all__ = ["PIECE_COLOURS", "draw_polygons", "figure_sheet", "pair_sheet", "save_png"]
+__all__ = ["PIECE_COLOURS", "draw_polygons", "tile_sheet", "figure_sheet", "pair_sheet", "save_png"]
 
 #: One colour per piece id (cycled for larger sets).
 PIECE_COLOURS = [
@@ -51,7 +51,8 @@ def draw_polygons(
     return img
 
 
-def _grid(tiles: list[Image.Image], labels: list[str], columns: int, label_h: int = 16) -> Image.Image:
+def tile_sheet(tiles: list[Image.Image], labels: list[str], columns: int, label_h: int = 16) -> Image.Image:
+    """Tiles in a grid of ``columns``, each under its label."""
     if not tiles:
         raise ValueError("nothing to draw")
     tw, th = tiles[0].size
@@ -74,7 +75,7 @@ def figure_sheet(figures: Sequence, columns: int = 8, tile: int = 200, view: Vie
         tiles.append(draw_polygons(polys, tile, view))
         fam = getattr(f, "family", None) or ""
         labels.append(f"{f.name} {fam}".strip())
-    return _grid(tiles, labels, columns)
+    return tile_sheet(tiles, labels, columns)
 
 
 def pair_sheet(pairs: Sequence[tuple[np.ndarray, np.ndarray, str]], columns: int = 6, scale: int = 2) -> Image.Image:
@@ -94,7 +95,7 @@ def pair_sheet(pairs: Sequence[tuple[np.ndarray, np.ndarray, str]], columns: int
         img = Image.fromarray(rgb).resize((sil.shape[1] * scale, sil.shape[0] * scale), Image.Resampling.NEAREST)
         tiles.append(img)
         labels.append(lab)
-    return _grid(tiles, labels, columns)
+    return tile_sheet(tiles, labels, columns)
 
 
 def save_png(img: Image.Image, path: str | os.PathLike) -> None:

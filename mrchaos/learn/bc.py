@@ -56,6 +56,7 @@ __all__ = [
     "augment",
     "demonstrations",
     "supervised_loss",
+    "dense_target_logits",
     "ranking_loss",
     "SupervisedRun",
     "train_bc",
@@ -222,10 +223,15 @@ def supervised_loss(dist, labels: torch.Tensor, dense: bool, temperature: float)
     """Per-sample negative log-likelihood of oracle actions, or cross-entropy against softmax(coverage / T)."""
     if not dense:
         return -dist.log_prob(labels)
-    q = labels.flatten(1)
-    logits = torch.where(q == _MASKED, -torch.inf, q.float() / 254 / temperature)
-    target = torch.softmax(logits, -1)
+    target = torch.softmax(dense_target_logits(labels, temperature), -1)
     return -(target * dist.logits).sum(-1)
+
+
+def dense_target_logits(labels: torch.Tensor, temperature: float) -> torch.Tensor:
+    """(N, A) logits of the dense targets softmax(coverage / T) of uint8 labels (N, T, Y, X) (see
+    :func:`_dense_label`); -inf where physics decides (masked)."""
+    q = labels.flatten(1)
+    return torch.where(q == _MASKED, -torch.inf, q.float() / 254 / temperature)
 
 
 def free_supervised_loss(

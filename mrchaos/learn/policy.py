@@ -29,6 +29,7 @@ from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperato
 
 from mrchaos.core.raster import View
 from mrchaos.env.actions import ActionGrid
+from mrchaos.learn.globalview import GLOBAL_VIEWS, build_global_view
 
 __all__ = [
     "PolicyConfig",
@@ -70,6 +71,12 @@ class PolicyConfig:
             the single most probable action. Sampling, log-probabilities and training are
             unchanged. A window of 3 (plus or minus one 4 mm step) reads the peak of the
             placement's probability rather than its highest single spike.
+        global_view: a block of the spatial trunk that lets every cell see the whole image
+            (:mod:`mrchaos.learn.globalview`): "none", "attention" (transformer layers over
+            patches) or "unet"; added after the context path.
+        global_width: the global block's width (tokens' width, or the U-Net's first width).
+        global_layers: transformer layers of the "attention" block.
+        coords: the spatial trunk also reads two coordinate channels (x and y across the view).
     """
 
     name: str = "spatial"
@@ -79,6 +86,10 @@ class PolicyConfig:
     upsample: int = 1
     context: int = 0
     mode_window: int = 1
+    global_view: str = "none"
+    global_width: int = 64
+    global_layers: int = 2
+    coords: bool = False
 
     def __post_init__(self) -> None:
         if self.name not in POLICIES:
@@ -93,6 +104,14 @@ class PolicyConfig:
             raise ValueError(f"policy.context must be >= 0 (0 = no context path), got {self.context}")
         if self.mode_window < 1 or self.mode_window % 2 == 0:
             raise ValueError(f"policy.mode_window must be odd and >= 1, got {self.mode_window}")
+        if self.global_view not in GLOBAL_VIEWS:
+            raise ValueError(f"policy.global_view must be one of {GLOBAL_VIEWS}, got {self.global_view!r}")
+        if self.global_width < 1 or self.global_layers < 1:
+            raise ValueError(
+                f"policy.global_width and global_layers must be >= 1, got {self.global_width}, {self.global_layers}"
+            )
+        if self.name != "spatial" and (self.global_view != "none" or self.coords):
+            raise ValueError(f"policy.global_view and policy.coords need the spatial policy, got {self.name!r}")
         if self.name != "spatial" and self.mode_window != 1:
             raise ValueError(
                 f"policy.mode_window needs the spatial policy (one score per grid action), got {self.name!r}"
@@ -395,8 +414,9 @@ class SpatialTrunk(nn.Module):
         self.pool = cfg.pool
         self.pieces = pieces
         patch = max(1, 4 // cfg.pool)
+        self.coords = cfg.coords
         self.enc = nn.Sequential(
-            nn.Conv2d(2, c1, patch, stride=patch),
+            nn.Conv2d(4 if cfg.coords else 2, c1, patch, stride=patch),
             nn.ReLU(),
             nn.Conv2d(c1, c2, 3, padding=1),
             nn.ReLU(),
@@ -424,13 +444,18 @@ class SpatialTrunk(nn.Module):
         self.film = nn.Linear(cfg.hidden, 2 * c3)
         self.out_channels = c3
         self.cells = size // cfg.pool // patch  # feature cells across the image
+        self.global_view = build_global_view(cfg.global_view, c3, cfg.global_width, cfg.global_layers, self.cells)
         self.hidden = cfg.hidden
 
     def forward(self, obs: torch.Tensor, remaining: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         lead = obs.shape[:-3]
         # channels_last halves the cost of these small convolutions on CPU (measured).
-        x = _prep(obs.reshape(-1, *obs.shape[-3:]), self.pool).contiguous(memory_format=torch.channels_last)
-        f = self.enc(x)
+        x = _prep(obs.reshape(-1, *obs.shape[-3:]), self.pool)
+        if self.coords:
+            ramp = torch.linspace(-1.0, 1.0, x.shape[-1], dtype=x.dtype, device=x.device)
+            grid = torch.stack([ramp.expand(x.shape[-2], -1), ramp[:, None].expand(-1, x.shape[-1])])
+            x = torch.cat([x, grid.expand(len(x), -1, -1, -1)], 1)
+        f = self.enc(x.contiguous(memory_format=torch.channels_last))
         if self.context is not None:
             h = F.relu(self.context["down"](f))
             blocks = self.context["blocks"]
@@ -438,6 +463,8 @@ class SpatialTrunk(nn.Module):
             for block in blocks:
                 h = F.relu(h + block(h))
             f = F.relu(f + F.interpolate(self.context["up"](h), size=f.shape[-2:], mode="nearest"))
+        if self.global_view is not None:
+            f = F.relu(f + self.global_view(f))
         pooled = [f.mean((-2, -1)), f.amax((-2, -1))]
         if self.pieces:
             assert remaining is not None  # free order's modules read it (build_actor_critic)

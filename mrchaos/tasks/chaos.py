@@ -89,6 +89,12 @@ class ChaosConfig:
         if self.tile_compactness < 0:
             raise ValueError(f"task.chaos.tile_compactness must be >= 0, got {self.tile_compactness}")
 
+    def shares(self) -> np.ndarray:
+        """(3,) the share of objects each generator of :data:`MODES` draws."""
+        if self.mode in MODES:
+            return np.eye(len(MODES))[MODES.index(self.mode)]
+        return np.array([1.0 - self.attract_fraction - self.tile_fraction, self.attract_fraction, self.tile_fraction])
+
     def bound(self, view: View) -> float:
         """Largest |x| or |y| (m) a vertex may reach in ``view``."""
         return view.extent / 2 - self.margin

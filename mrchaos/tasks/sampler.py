@@ -19,7 +19,7 @@ from mrchaos.figures.figure import Figure
 from mrchaos.figures.formats import load_figures
 from mrchaos.figures.library import builtin_figures
 from mrchaos.figures.pieces import PieceSet
-from mrchaos.tasks.chaos import ChaosCache, ChaosConfig, generate
+from mrchaos.tasks.chaos import MODES, ChaosCache, ChaosConfig, generate
 
 __all__ = ["TaskConfig", "MixConfig", "CacheConfig", "TargetBatch", "TargetSampler", "SOURCES"]
 
@@ -161,6 +161,16 @@ class TargetSampler:
                 raise ValueError(
                     f"{path}: chaos cache {had} mirrored pieces but task.chaos.mirror_prob is "
                     f"{self.cfg.chaos.mirror_prob}; delete it or set task.cache.path to rebuild"
+                )
+            # A cache drawn by other generators would train on other objects than the config says.
+            shares = self.cfg.chaos.shares()
+            present = set(np.unique(cache.modes).tolist())
+            drawn = {m for m, w in enumerate(shares) if w > 0}
+            if not present <= drawn or (shares[2] > 0 and 2 not in present):
+                have = ", ".join(MODES[m] for m in sorted(present))
+                raise ValueError(
+                    f"{path}: chaos cache holds {have} objects but task.chaos draws "
+                    f"{', '.join(MODES[m] for m in sorted(drawn))}; delete it or set task.cache.path to rebuild"
                 )
             return cache
         log.info("building a chaos cache of %d objects", self.cfg.cache.size)

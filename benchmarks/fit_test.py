@@ -1,0 +1,184 @@
+"""The fit test: can a network learn edge-joined objects at all? Minutes, before any long run.
+
+Labels a few thousand states of one chaos mode (dense counterfactual targets, as
+``conf/dense.yaml``), trains each candidate network on exactly those states with the dense
+recipe's supervised loop (no DAgger), and benches it greedily, the policy alone, on:
+
+* ``own``: objects it was trained on (does it fit what it was shown? the oracle is the ceiling);
+* ``tile``: held-out edge-joined objects (seed 7);
+* ``chaos``: held-out objects of today's chaos mix (scatter and attract, seed 7);
+* ``library``: the built-in human figures (those that need no flip).
+
+It prints one row per network: Rela / IoU on each set, the last epoch's loss, parameters and
+minutes per epoch on this machine; the oracle's row is the ceiling. Runs go to ``--out``
+(one folder per network; the labelled states are shared between them, labelled once)::
+
+    python benchmarks/fit_test.py --objects 430 --epochs 20 --nets today,attention,unet
+
+Choose networks here, on held-out chaos and the library, never on mrchaos104.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import logging
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from mrchaos.core.atomic import write_atomic
+from mrchaos.env.oracle import oracle_actions
+from mrchaos.env.tangram import TangramEnv
+from mrchaos.figures.library import builtin_figures
+from mrchaos.learn.bc import SupervisedRun, dense_target_logits
+from mrchaos.learn.config import TrainConfig, load_config
+from mrchaos.learn.evaluate import evaluate, policy_actor
+from mrchaos.learn.policy import count_parameters
+from mrchaos.tasks.chaos import generate
+
+#: Candidate networks: policy overrides on top of the recipe's (conf/dense.yaml: the spatial net
+#: with its 32-channel context path). "today" is the shipped policies' network.
+NETS: dict[str, list[str]] = {
+    "today": [],
+    "coords": ["policy.coords=true"],
+    "wide": ["policy.channels=[32,64,64]", "policy.context=64"],
+    "attention": ["policy.global_view=attention"],
+    "unet": ["policy.global_view=unet"],
+    "attention4": ["policy.global_view=attention", "policy.global_layers=4"],
+}
+
+SETS = ("own", "tile", "chaos", "library")
+
+
+def _eval_sets(cfg: TrainConfig, n: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The bench's target sets: (poses, mirrored) of each. ``own`` is the first ``n`` training
+    objects (the same draw as the run's demonstrations)."""
+    env_cfg = cfg.env_config()
+    piece_set = TangramEnv(dataclasses.replace(env_cfg, num_worlds=1, task=cfg.task.given_targets())).piece_set
+    view = cfg.env.view
+    own, _, own_m = generate(piece_set, cfg.bc.objects, np.random.default_rng(cfg.bc.seed), cfg.task.chaos, view)
+    tile, _, tile_m = generate(
+        piece_set, n, np.random.default_rng(7), dataclasses.replace(cfg.task.chaos, mode="tile"), view
+    )
+    mix = dataclasses.replace(cfg.task.chaos, mode="mix", attract_fraction=0.5, tile_fraction=0.0)
+    chaos, _, chaos_m = generate(piece_set, n, np.random.default_rng(7), mix, view)
+    lib = [f for f in builtin_figures() if not f.has_mirrored]
+    return {
+        "own": (own[:n], own_m[:n]),
+        "tile": (tile, tile_m),
+        "chaos": (chaos, chaos_m),
+        "library": (np.stack([f.poses for f in lib]), np.stack([f.mirrored for f in lib])),
+    }
+
+
+def _bench(cfg: TrainConfig, actor, sets: dict) -> dict[str, dict[str, float]]:
+    noise = dataclasses.replace(cfg.env.noise, action_xy=0.0, action_theta=0.0, camera_jitter=0.0)
+    env_cfg = dataclasses.replace(cfg.env_config(), num_worlds=100, noise=noise, task=cfg.task.given_targets())
+    env = TangramEnv(env_cfg, seed=2024)
+    out = {}
+    for name, (poses, mirrored) in sets.items():
+        res = evaluate(env, poses, actor, mirrored=mirrored)
+        out[name] = {"rela": 100 * float(res.rela.mean()), "iou": 100 * float(res.iou.mean()), "n": len(poses)}
+    env.close()
+    return out
+
+
+def _target_entropy(shard: Path, temperature: float) -> float:
+    """Mean entropy (nats) of the dense targets softmax(coverage / T) of a shard's states: the
+    cross-entropy loss cannot go below it, so loss minus it is how far a network is from fitting."""
+    lp = torch.log_softmax(dense_target_logits(torch.load(shard, weights_only=True)["label"], temperature), -1)
+    return float(-(torch.where(lp > -torch.inf, lp.exp() * lp, 0.0)).sum(-1).mean())
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--config", default="conf/dense.yaml", help="the recipe the candidates share")
+    ap.add_argument("--mode", default="tile", help="chaos mode of the training objects (tile, attract, mix, ...)")
+    ap.add_argument("--objects", type=int, default=430, help="training objects (7 labelled states each)")
+    ap.add_argument("--epochs", type=int, default=20)
+    ap.add_argument("--eval", type=int, default=100, help="objects per bench set")
+    ap.add_argument("--nets", default="today,attention,unet", help=f"comma-separated, of {sorted(NETS)}")
+    ap.add_argument("--out", default="runs/fit")
+    ap.add_argument("overrides", nargs="*", help="key=value settings for every candidate")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    names = args.nets.split(",")
+    unknown = [n for n in names if n not in NETS]
+    if unknown:
+        ap.error(f"unknown networks {unknown}; known: {sorted(NETS)}")
+    out = Path(args.out)
+    shared = [
+        f"task.chaos.mode={args.mode}",
+        f"bc.objects={args.objects}",
+        f"bc.epochs={args.epochs}",
+        "bc.dagger_rounds=0",
+        *args.overrides,
+    ]
+    base = load_config(args.config, shared)
+    sets = _eval_sets(base, args.eval)
+    results: dict[str, dict] = {}
+    summary = out / "results.json"
+    if summary.exists():
+        results = json.loads(summary.read_text())
+    if "oracle" not in results:
+        results["oracle"] = {"sets": _bench(base, lambda env, td: oracle_actions(env), sets)}
+    data = out / "data" / "round_0.pt"
+    for name in names:
+        cfg = load_config(args.config, shared + NETS[name] + [f"name=fit_{name}"])
+        run_dir = out / name
+        if data.exists() and not (run_dir / "data" / "round_0.pt").exists():
+            (run_dir / "data").mkdir(parents=True, exist_ok=True)
+            shutil.copy(data, run_dir / "data" / "round_0.pt")  # the same states for every network
+        t0 = time.perf_counter()
+        run = SupervisedRun(cfg, run_dir, resume=(run_dir / "checkpoints" / "last.pt").exists())
+        run.run()
+        if not data.exists():
+            data.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(run_dir / "data" / "round_0.pt", data)
+        with open(run_dir / "metrics.csv", newline="") as f:
+            rows = list(csv.DictReader(f))
+        # The first epoch's minutes include the labelling: time epochs from the first one's end.
+        ticks = [float(r["minutes"]) for r in rows]
+        per_epoch = (ticks[-1] - ticks[0]) / (len(ticks) - 1) if len(ticks) > 1 else ticks[0]
+        results[name] = {
+            "overrides": NETS[name],
+            "parameters": count_parameters(run.ac),
+            "loss": float(rows[-1]["sup"]),
+            "first_loss": float(rows[0]["sup"]),
+            "minutes_per_epoch": per_epoch,
+            "wall_minutes": (time.perf_counter() - t0) / 60,
+            "sets": _bench(cfg, policy_actor(run.policy), sets),
+        }
+        write_atomic(summary, json.dumps(results, indent=1) + "\n")
+    if "target_entropy" not in results and data.exists():
+        results["target_entropy"] = _target_entropy(data, base.bc.temperature)
+    write_atomic(summary, json.dumps(results, indent=1) + "\n")
+    print(f"the labels' own entropy, the floor of the loss: {results.get('target_entropy', float('nan')):.2f}")
+    print(
+        f"fit test: {args.objects} {args.mode} objects ({7 * args.objects} states), {args.epochs} epochs; "
+        f"Rela / IoU, greedy, the policy alone; {torch.get_num_threads()} threads"
+    )
+    print("| network | params | loss (first → last) | min/epoch | " + " | ".join(SETS) + " |")
+    print("|---|---|---|---|" + "---|" * len(SETS))
+    for name, r in results.items():
+        if name == "target_entropy":
+            continue
+        cells = " | ".join(f"{r['sets'][s]['rela']:.1f} / {r['sets'][s]['iou']:.1f}" for s in SETS)
+        if name == "oracle":
+            print(f"| oracle | | | | {cells} |")
+        else:
+            print(
+                f"| {name} | {r['parameters']:,} | {r['first_loss']:.2f} → {r['loss']:.2f} | "
+                f"{r['minutes_per_epoch']:.2f} | {cells} |"
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
