@@ -79,7 +79,8 @@ def _eval_sets(cfg: TrainConfig, n: int) -> dict[str, tuple[np.ndarray, np.ndarr
 
 def _bench(cfg: TrainConfig, actor, sets: dict) -> dict[str, dict[str, float]]:
     noise = dataclasses.replace(cfg.env.noise, action_xy=0.0, action_theta=0.0, camera_jitter=0.0)
-    env_cfg = dataclasses.replace(cfg.env_config(), num_worlds=100, noise=noise, task=cfg.task.given_targets())
+    worlds = min(100, max(len(poses) for poses, _ in sets.values()))
+    env_cfg = dataclasses.replace(cfg.env_config(), num_worlds=worlds, noise=noise, task=cfg.task.given_targets())
     env = TangramEnv(env_cfg, seed=2024)
     out = {}
     for name, (poses, mirrored) in sets.items():

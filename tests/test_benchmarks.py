@@ -106,3 +106,25 @@ def test_the_face_is_open_only_where_the_last_slots_also_tile_with_the_piece_tur
     assert flip_faces.face_open(mirror_figure(figs["square"])) == {3: False}
     assert flip_faces.face_open(mirror_figure(figs["rectangle"])) == {3: True}
     sys.modules.pop("flip_faces", None)
+
+
+@pytest.mark.slow
+def test_the_fit_test_labels_once_and_benches_every_network(tmp_path, monkeypatch, capsys):
+    """benchmarks/fit_test.py: the second network trains on the first one's labelled states (a
+    copy, not a new labelling), and every network gets a row on every bench set."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    monkeypatch.chdir(ROOT)
+    import fit_test
+
+    out = tmp_path / "fit"
+    args = ["--objects", "3", "--epochs", "1", "--eval", "2", "--nets", "today,coords", "--out", str(out)]
+    assert fit_test.main([*args, "env.num_worlds=4", "bc.minibatch_size=8"]) == 0
+    shards = [torch.load(out / n / "data" / "round_0.pt", weights_only=True) for n in ("today", "coords")]
+    assert torch.equal(shards[0]["label"], shards[1]["label"]) and len(shards[0]["label"]) == 21
+    res = json.loads((out / "results.json").read_text())
+    assert set(res) == {"oracle", "today", "coords", "target_entropy"}
+    for name in ("oracle", "today", "coords"):
+        assert set(res[name]["sets"]) == set(fit_test.SETS)
+    assert res["oracle"]["sets"]["tile"]["rela"] > 80
+    assert "| coords |" in capsys.readouterr().out
+    sys.modules.pop("fit_test", None)

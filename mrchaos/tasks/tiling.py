@@ -69,7 +69,7 @@ def tile_objects(
     mirrored: np.ndarray | None = None,
 ) -> np.ndarray:
     """(n, P, 3) centroid poses of edge-joined objects, centred on their bounding boxes: pieces
-    at multiples of ``angle_step`` (rad), each object inside a ``span`` x ``span`` m square;
+    at multiples of ``angle_step`` (rad), each object within ``span`` m across in x and in y;
     ``mirrored`` (n, P) bool: pieces turned over. An object that finds no joint for a piece is
     drawn again, up to ``max_tries`` times."""
     if angle_step <= 0:
@@ -79,10 +79,11 @@ def tile_objects(
     steps = max(1, int(round(2 * np.pi / angle_step)))
     angles = np.arange(steps) * (2 * np.pi / steps) - np.pi
     shapes = {flip: _Shapes(piece_set, angles, flip) for flip in (False, True)}
+    unit = _shortest_edge(piece_set)
     poses = np.zeros((n, p, 3))
     for b in range(n):
         for _ in range(max_tries):
-            got = _grow(piece_set, rng, knobs, shapes, mirrored[b], span)
+            got = _grow(piece_set, rng, knobs, shapes, mirrored[b], span, unit)
             if got is not None:
                 poses[b] = got
                 break
@@ -121,10 +122,11 @@ def _grow(
     shapes: dict[bool, _Shapes],
     mirrored: np.ndarray,
     span: float,
+    unit: float,
 ) -> np.ndarray | None:
-    """One object's centroid poses, or None when a piece found no joint (the caller retries)."""
+    """One object's centroid poses, or None when a piece found no joint (the caller retries);
+    ``unit`` (m) is the contact that counts as one in the compactness weight."""
     p = len(piece_set)
-    unit = _shortest_edge(piece_set)
     kappa = rng.uniform(0.0, knobs.compactness)
     limb_share = rng.uniform(0.0, knobs.limbs)
     holes = rng.random() < knobs.hole_prob
