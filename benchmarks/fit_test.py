@@ -36,6 +36,7 @@ from mrchaos.core.atomic import write_atomic
 from mrchaos.env.oracle import oracle_actions
 from mrchaos.env.tangram import TangramEnv
 from mrchaos.figures.library import builtin_figures
+from mrchaos.figures.pieces import get_piece_set
 from mrchaos.learn.bc import SupervisedRun, dense_target_logits
 from mrchaos.learn.config import TrainConfig, load_config
 from mrchaos.learn.evaluate import evaluate, policy_actor
@@ -59,8 +60,7 @@ SETS = ("own", "tile", "chaos", "library")
 def _eval_sets(cfg: TrainConfig, n: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The bench's target sets: (poses, mirrored) of each. ``own`` is the first ``n`` training
     objects (the same draw as the run's demonstrations)."""
-    env_cfg = cfg.env_config()
-    piece_set = TangramEnv(dataclasses.replace(env_cfg, num_worlds=1, task=cfg.task.given_targets())).piece_set
+    piece_set = get_piece_set(cfg.env.piece_set)
     view = cfg.env.view
     own, _, own_m = generate(piece_set, cfg.bc.objects, np.random.default_rng(cfg.bc.seed), cfg.task.chaos, view)
     tile, _, tile_m = generate(
@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
         write_atomic(summary, json.dumps(results, indent=1) + "\n")
     if "target_entropy" not in results and data.exists():
         results["target_entropy"] = _target_entropy(data, base.bc.temperature)
-    write_atomic(summary, json.dumps(results, indent=1) + "\n")
+        write_atomic(summary, json.dumps(results, indent=1) + "\n")
     print(f"the labels' own entropy, the floor of the loss: {results.get('target_entropy', float('nan')):.2f}")
     print(
         f"fit test: {args.objects} {args.mode} objects ({7 * args.objects} states), {args.epochs} epochs; "

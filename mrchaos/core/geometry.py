@@ -50,6 +50,13 @@ def rigid_transform(vertices: np.ndarray, pose: np.ndarray) -> np.ndarray:
     return np.stack([x, y], axis=-1)
 
 
+def step_angles(step: float) -> np.ndarray:
+    """The rotations that are multiples of ``step`` (rad), from -pi upwards: a whole turn cut into
+    round(2 pi / step) equal steps."""
+    n = max(1, int(round(2 * math.pi / step)))
+    return np.arange(n) * (2 * math.pi / n) - math.pi
+
+
 def wrap_angle(theta: np.ndarray | float) -> np.ndarray:
     """Wrap angles to [-pi, pi)."""
     return (np.asarray(theta) + math.pi) % (2 * math.pi) - math.pi

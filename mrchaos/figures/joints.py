@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 
-from mrchaos.core.geometry import rigid_transform
+from mrchaos.figures.figure import Figure
 from mrchaos.figures.pieces import PieceSet
 
 __all__ = ["Joints", "assembly_joints", "JointSummary", "summarize_joints"]
@@ -52,14 +52,6 @@ class Joints:
         return int(self.blocks.max()) + 1
 
 
-def _outlines(piece_set: PieceSet, poses: np.ndarray, mirrored: np.ndarray | None) -> list[np.ndarray]:
-    out = []
-    for i, piece in enumerate(piece_set.pieces):
-        flip = mirrored is not None and bool(mirrored[i]) and piece.chiral
-        out.append(rigid_transform(piece.mirrored_outline() if flip else piece.outline, poses[i]))
-    return out
-
-
 def assembly_joints(
     piece_set: PieceSet,
     poses: np.ndarray,
@@ -69,7 +61,9 @@ def assembly_joints(
 ) -> Joints:
     """The joints of one assembly: centroid poses (P, 3), ``mirrored`` (P,) bool; outlines within
     ``tolerance`` (m) count as shared; pairs sharing ``block_edge`` (m) or more join a block."""
-    polys = [shapely.Polygon(v) for v in _outlines(piece_set, np.asarray(poses, dtype=np.float64), mirrored)]
+    faces = np.zeros(len(piece_set), dtype=bool) if mirrored is None else mirrored
+    assembly = Figure("assembly", piece_set, poses, faces)
+    polys = [shapely.Polygon(assembly.piece_polygon(i)) for i in range(len(piece_set))]
     p = len(polys)
     grown = [q.buffer(tolerance, join_style="mitre") for q in polys]
     shared = np.zeros((p, p))

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mrchaos.core.geometry import convex_penetration, rigid_transform
+from mrchaos.core.geometry import convex_penetration, rigid_transform, step_angles
 from mrchaos.core.raster import View
 from mrchaos.figures.pieces import PieceSet
 from mrchaos.tasks.tiling import TileKnobs, tile_objects
@@ -103,8 +103,8 @@ class ChaosConfig:
 def _draw_angles(rng: np.random.Generator, shape: tuple[int, ...], step: float) -> np.ndarray:
     if step <= 0:
         return rng.uniform(-math.pi, math.pi, shape)
-    n = max(1, int(round(2 * math.pi / step)))
-    return rng.integers(0, n, shape) * (2 * math.pi / n) - math.pi
+    angles = step_angles(step)
+    return angles[rng.integers(0, len(angles), shape)]
 
 
 def scatter(

@@ -26,11 +26,12 @@ The generator reads no human figure.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import shapely
 
-from mrchaos.core.geometry import convex_penetration, rigid_transform
+from mrchaos.core.geometry import convex_penetration, rigid_transform, step_angles
 from mrchaos.figures.pieces import PieceSet
 
 __all__ = ["TileKnobs", "tile_objects"]
@@ -76,8 +77,7 @@ def tile_objects(
         raise ValueError("chaos mode 'tile' lays pieces at the grid's angles: task.chaos.angle_step must be > 0")
     p = len(piece_set)
     mirrored = np.zeros((n, p), dtype=bool) if mirrored is None else np.asarray(mirrored, dtype=bool)
-    steps = max(1, int(round(2 * np.pi / angle_step)))
-    angles = np.arange(steps) * (2 * np.pi / steps) - np.pi
+    angles = step_angles(angle_step)
     shapes = {flip: _Shapes(piece_set, angles, flip) for flip in (False, True)}
     unit = _shortest_edge(piece_set)
     poses = np.zeros((n, p, 3))
@@ -110,9 +110,20 @@ class _Shapes:
             self.parts.append(rigid_transform(parts[i], pose[:, None]))
 
 
-def _edges(verts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Start points and end points (..., V, 2) of a closed polygon's edges."""
-    return verts, np.roll(verts, -1, axis=-2)
+class _Edges(NamedTuple):
+    """A closed polygon's edges: start points (..., V, 2), unit directions (..., V, 2) (zero for a
+    zero-length edge) and lengths (..., V)."""
+
+    start: np.ndarray
+    unit: np.ndarray
+    length: np.ndarray
+
+
+def _edges(verts: np.ndarray) -> _Edges:
+    """The edges of polygons ``verts`` (..., V, 2)."""
+    d = np.roll(verts, -1, axis=-2) - verts
+    length = np.linalg.norm(d, axis=-1)
+    return _Edges(verts, d / np.maximum(length, 1e-12)[..., None], length)
 
 
 def _grow(
@@ -144,7 +155,8 @@ def _grow(
             continue
         limb = step >= 2 and rng.random() < limb_share
         corner = limb and rng.random() < _CORNER_SHARE
-        angle, shift = _candidates(sh.verts[i], placed_verts, corners=corner)
+        placed = _Edges(*(np.concatenate(x) for x in zip(*map(_edges, placed_verts), strict=True)))
+        angle, shift = _candidates(sh.verts[i], placed, corners=corner)
         if len(angle) == 0:
             return None
         verts = sh.verts[i][angle] + shift[:, None]  # (C, V, 2)
@@ -156,7 +168,7 @@ def _grow(
         others = np.concatenate(placed_parts)  # (M, Vmax, 2)
         depth = convex_penetration(parts[:, :, None], others[None, None])  # (C, K, M)
         ok &= (depth <= _TOUCH).all((1, 2))
-        contact = _contact(verts, np.concatenate([np.stack(_edges(v), 1) for v in placed_verts]))
+        contact = _contact(verts, placed)
         ok &= (contact > 0) | corner
         idx = np.flatnonzero(ok)
         if len(idx) == 0:
@@ -181,31 +193,24 @@ def _grow(
 
 def _shortest_edge(piece_set: PieceSet) -> float:
     """The set's shortest outline edge (m): the unit of contact in the compactness weight."""
-    lengths = [np.linalg.norm(np.roll(q.outline, -1, 0) - q.outline, axis=1) for q in piece_set.pieces]
+    lengths = [_edges(q.outline).length for q in piece_set.pieces]
     return float(min(x[x > 1e-9].min() for x in lengths))
 
 
-def _candidates(verts: np.ndarray, placed: list[np.ndarray], corners: bool) -> tuple[np.ndarray, np.ndarray]:
+def _candidates(verts: np.ndarray, placed: _Edges, corners: bool) -> tuple[np.ndarray, np.ndarray]:
     """Joints of a piece (outline ``verts`` (A, V, 2) at each grid angle, centroid at the origin)
-    to the placed outlines: (C,) angle index and (C, 2) centroid position of each.
+    to the placed edges (:func:`_edges` of every placed outline, concatenated): (C,) angle index
+    and (C, 2) centroid position of each.
 
     An edge joint puts one of the piece's edges along a placed edge, facing it, with an end or
     the midpoint of one on an end or the midpoint of the other, sharing at least half the
     shorter edge. A corner joint (``corners``) puts one of its vertices on a placed vertex.
     """
-    obj_a = np.concatenate([v for v in placed])  # placed edges: start
-    obj_b = np.concatenate([np.roll(v, -1, 0) for v in placed])  # end
-    d1 = obj_b - obj_a
-    len1 = np.linalg.norm(d1, axis=1)
-    keep = len1 > 1e-9
-    obj_a, d1, len1 = obj_a[keep], d1[keep], len1[keep]
-    u1 = d1 / len1[:, None]
-    pa, pb = _edges(verts)  # (A, V, 2)
-    d2 = pb - pa
-    len2 = np.linalg.norm(d2, axis=-1)
-    u2 = d2 / np.maximum(len2, 1e-12)[..., None]
+    obj_a, u1, len1 = placed
+    _, u2, len2 = _edges(verts)  # (A, V, 2)
+    pb = np.roll(verts, -1, axis=-2)
     # Facing edges run antiparallel (both outlines counter-clockwise).
-    facing = (np.einsum("avk,ek->eav", u2, u1) < -1 + 1e-9) & (len2 > 1e-9)[None]
+    facing = (np.einsum("avk,ek->eav", u2, u1) < -1 + 1e-9) & (len2 > 1e-9)[None] & (len1 > 1e-9)[:, None, None]
     e, a, v = np.nonzero(facing)
     angle_out, shift_out = [], []
     if len(e):
@@ -220,10 +225,9 @@ def _candidates(verts: np.ndarray, placed: list[np.ndarray], corners: bool) -> t
         shift_out.append(end - pb[a[row], v[row]])
         angle_out.append(a[row])
     if corners:
-        objv = np.concatenate(placed)
         na, nv = verts.shape[:2]
-        shift_out.append((objv[:, None, None] - verts[None]).reshape(-1, 2))
-        angle_out.append(np.broadcast_to(np.arange(na)[None, :, None], (len(objv), na, nv)).reshape(-1))
+        shift_out.append((obj_a[:, None, None] - verts[None]).reshape(-1, 2))
+        angle_out.append(np.broadcast_to(np.arange(na)[None, :, None], (len(obj_a), na, nv)).reshape(-1))
     if not angle_out:
         return np.zeros(0, dtype=np.int64), np.zeros((0, 2))
     angle = np.concatenate(angle_out)
@@ -235,17 +239,11 @@ def _candidates(verts: np.ndarray, placed: list[np.ndarray], corners: bool) -> t
     return angle[first], shift[first]
 
 
-def _contact(verts: np.ndarray, placed_edges: np.ndarray) -> np.ndarray:
+def _contact(verts: np.ndarray, placed: _Edges) -> np.ndarray:
     """(C,) outline length (m) that each candidate (C, V, 2) shares with the placed edges
-    (E, 2, 2): facing, collinear segments' overlap."""
-    pa, pb = _edges(verts)
-    d2 = pb - pa
-    len2 = np.linalg.norm(d2, axis=-1)
-    u2 = d2 / np.maximum(len2, 1e-12)[..., None]
-    qa, qb = placed_edges[:, 0], placed_edges[:, 1]
-    d1 = qb - qa
-    len1 = np.linalg.norm(d1, axis=-1)
-    u1 = d1 / np.maximum(len1, 1e-12)[..., None]
+    (:func:`_edges`, concatenated): facing, collinear segments' overlap."""
+    pa, u2, len2 = _edges(verts)
+    qa, u1, len1 = placed
     dot = np.einsum("cvk,ek->cve", u2, u1)
     # Distance of the candidate edge's start from the placed edge's line.
     rel = pa[:, :, None] - qa[None, None]  # (C, V, E, 2)
