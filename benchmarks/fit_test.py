@@ -51,6 +51,7 @@ NETS: dict[str, list[str]] = {
     "wide": ["policy.channels=[32,64,64]", "policy.context=64"],
     "attention": ["policy.global_view=attention"],
     "unet": ["policy.global_view=unet"],
+    "unet32": ["policy.global_view=unet", "policy.global_width=32"],
     "attention4": ["policy.global_view=attention", "policy.global_layers=4"],
 }
 

@@ -10,12 +10,19 @@ from pathlib import Path
 import numpy as np
 
 from mrchaos.cli.guard import run_command
+from mrchaos.cli.logs import configure_logging
 
 
 def main(argv: list[str] | None = None) -> int:
     # The parser is built after the dependencies import: its help reads the registries (tasks,
     # their families, shipped policies), so that it cannot drift from them.
-    return run_command("mrchaos-bench", lambda: _bench(_parser().parse_args(argv)))
+    return run_command("mrchaos-bench", lambda: _bench(_parsed(argv)))
+
+
+def _parsed(argv: list[str] | None) -> argparse.Namespace:
+    args = _parser().parse_args(argv)
+    configure_logging(args.verbose, progress=False)
+    return args
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -44,6 +51,7 @@ def _parser() -> argparse.ArgumentParser:
         help="interchange JSON or folder of KILOGRAM SVGs (repeatable; "
         "default: the built-in library, or the task's authored goals)",
     )
+    ap.add_argument("-v", "--verbose", action="store_true", help="also print mrchaos's and the libraries' INFO lines")
     ap.add_argument("--random-objects", type=int, default=200)
     ap.add_argument("--placement", default="teleport", choices=["teleport", "robot"])
     ap.add_argument(

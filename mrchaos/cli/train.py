@@ -1,13 +1,16 @@
-"""``mrchaos-train CONFIG.yaml [key=value ...]`` and ``mrchaos-train --resume runs/<name>``."""
+"""``mrchaos-train CONFIG.yaml [key=value ...]`` and ``mrchaos-train --resume runs/<name>``.
+
+CONFIG is one experiment or a staged recipe (``conf/recipes/``, :mod:`mrchaos.learn.stages`),
+whose overrides take ``stage:key=value`` for one stage and ``key=value`` for all."""
 
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 from pathlib import Path
 
 from mrchaos.cli.guard import run_command
+from mrchaos.cli.logs import configure_logging
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -21,64 +24,48 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("overrides", nargs="*", help="dotted overrides, e.g. optim.lr=1e-4 env.num_worlds=64")
     ap.add_argument("--resume", metavar="RUN_DIR", help="continue the run in this folder from its last checkpoint")
     ap.add_argument("--eval", type=int, default=200, help="Random objects for the final greedy evaluation (0: skip)")
+    ap.add_argument("-v", "--verbose", action="store_true", help="also print the libraries' INFO lines")
     args = ap.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    configure_logging(args.verbose)
     return run_command("mrchaos-train", lambda: _train(ap, args))
 
 
 def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     from mrchaos.learn.checkpoint import CheckpointError
     from mrchaos.learn.config import ConfigError, load_config
-    from mrchaos.learn.ppo import Trainer, resume_config
+    from mrchaos.learn.ppo import resume_config
+    from mrchaos.learn.stages import is_recipe, load_recipe, resume_recipe, run_recipe, train_config
+
+    def train(cfg, run_dir: Path, resume: bool) -> dict:
+        return train_config(cfg, run_dir, resume, n_eval=args.eval)
 
     if args.resume:
         run_dir = Path(args.resume)
+        extra = ([args.config] if args.config else []) + args.overrides
+        if is_recipe(run_dir / "config.yaml"):
+            return _report(run_recipe(resume_recipe(run_dir, extra), train, resume=True))
         cfg = resume_config(run_dir)
-        if args.overrides or args.config:
-            extra = ([args.config] if args.config else []) + args.overrides
+        if extra:
             cfg = load_config(run_dir / "config.yaml", extra)
         if not (run_dir / "checkpoints" / "last.pt").exists():
             raise CheckpointError(f"{run_dir}: no checkpoints/last.pt to resume from")
-        if cfg.algo != "ppo":
-            return _supervise(cfg, run_dir, resume=True)
-        trainer = Trainer(cfg, run_dir, resume=True)
-    else:
-        if not args.config:
-            ap.error("a config file is required (or --resume RUN_DIR)")
-        cfg = load_config(args.config, args.overrides)
-        run_dir = Path(cfg.runs_dir) / cfg.name
-        if (run_dir / "checkpoints" / "last.pt").exists():
-            raise ConfigError(
-                f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another name=..."
-            )
-        if cfg.algo != "ppo":
-            return _supervise(cfg, run_dir)
-        trainer = Trainer(cfg, run_dir)
-    result = trainer.run()
-    print(
-        f"{run_dir}: {result['iteration']} iterations, {result['frames']} frames"
-        + (" (stopped by signal)" if result["stopped"] else "")
-    )
-    if args.eval > 0 and not result["stopped"]:
-        ev = trainer.finish(args.eval)
-        print(
-            f"greedy on {ev['n']} Random objects: Rela {ev['rela']:.3f}  Final {ev['final']:.3f}  "
-            f"IoU {ev['iou']:.3f}  strict Rela {ev['strict_rela']:.3f}"
+        return _report([train(cfg, run_dir, True)])
+    if not args.config:
+        ap.error("a config file is required (or --resume RUN_DIR)")
+    if is_recipe(args.config):
+        return _report(run_recipe(load_recipe(args.config, args.overrides), train))
+    cfg = load_config(args.config, args.overrides)
+    run_dir = Path(cfg.runs_dir) / cfg.name
+    if (run_dir / "checkpoints" / "last.pt").exists():
+        raise ConfigError(
+            f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another name=..."
         )
-    return 0
+    return _report([train(cfg, run_dir, False)])
 
 
-def _supervise(cfg, run_dir: Path, resume: bool = False) -> int:
-    """A supervised run (algo: bc) or a re-ranker run (algo: rerank)."""
-    from mrchaos.learn.bc import train_bc
-    from mrchaos.learn.rerank import train_rerank
-
-    res = (train_bc if cfg.algo == "bc" else train_rerank)(cfg, run_dir, resume=resume)
-    print(
-        f"{run_dir}: supervised on {res['samples']} labelled steps ({res['what']}), final loss "
-        f"{res['loss']:.3f}; greedy on {res['n']} Random objects: Rela {res['rela']:.3f} "
-        f"Final {res['final']:.3f}"
-    )
+def _report(results: list[dict]) -> int:
+    for res in results:
+        print(res["summary"])
     return 0
 
 

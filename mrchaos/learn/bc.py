@@ -596,6 +596,7 @@ class SupervisedRun:
             self.round, self.epoch = self.round + 1, 0
             self._load_or_label(self.round)
             self._save()  # the round's data is written: a resume starts its epochs
+        self._save()  # a run without epochs (init_from's weights, evaluated) leaves its checkpoint too
         ev = evaluate_random(self.policy, self.cfg.env_config(), n=100)
         write_atomic(self.run_dir / "eval.json", json.dumps(ev, indent=1) + "\n")
         samples = sum(len(s["observation"]) for s in self.shards)

@@ -35,7 +35,8 @@ __all__ = [
     "FORMAT",
 ]
 
-#: Learnt policies shipped with the package: name -> (file, label).
+#: Learnt policies shipped with the package: name -> (file, label). A label names the command that
+#: makes the policy from scratch (a staged recipe where it takes several runs).
 SHIPPED = {
     "mrchaos": ("mrchaos.pt", "MRChaos (full curriculum, spatial net)"),
     "mrchaos-paper": ("mrchaos-paper.pt", "MRChaos (full curriculum, paper net)"),
@@ -44,16 +45,15 @@ SHIPPED = {
     "bc": ("bc.pt", "BC (trained on the built-in library)"),
     "mrchaos-bc-chaos": ("mrchaos-bc-chaos.pt", "BC on chaos objects (conf/bc_chaos.yaml)"),
     "mrchaos-dense": ("mrchaos-dense.pt", "dense counterfactual supervision on chaos (conf/dense.yaml)"),
-    "mrchaos-dense-ppo": ("mrchaos-dense-ppo.pt", "PPO on top of mrchaos-dense (conf/dense_ppo.yaml)"),
+    "mrchaos-dense-ppo": ("mrchaos-dense-ppo.pt", "PPO on top of mrchaos-dense (conf/recipes/dense_ppo.yaml)"),
     "mrchaos-exit": ("mrchaos-exit.pt", "expert iteration on top of mrchaos-dense (conf/exit.yaml)"),
     "mrchaos-rerank": (
         "mrchaos-rerank.pt",
-        "mrchaos-exit's top 5 re-ranked by an afterstate network (conf/rerank.yaml)",
+        "mrchaos-exit's top 5 re-ranked by an afterstate network (conf/recipes/rerank.yaml)",
     ),
     "mrchaos-flip": (
         "mrchaos-flip.pt",
-        "the flip policy's top 5 re-ranked by an afterstate network (conf/flip_dense.yaml, conf/flip_exit.yaml, "
-        "then conf/flip_rerank.yaml)",
+        "the flip policy's top 5 re-ranked by an afterstate network (conf/recipes/flip.yaml)",
     ),
     "mrchaos-free": (
         "mrchaos-free.pt",

@@ -588,6 +588,12 @@ def load_config(path: str | Path | None, overrides: list[str] | None = None) -> 
             raise ConfigError(f"{p}: not valid YAML ({e})") from None
         if not isinstance(data, dict):
             raise ConfigError(f"{p}: the top level must be a mapping, got {data!r}")
+    return config_from_dict(data, where, overrides)
+
+
+def config_from_dict(data: dict, where: str = "<dict>", overrides: list[str] | None = None) -> TrainConfig:
+    """A :class:`TrainConfig` from a raw nested dict: old keys moved, ``key=value`` overrides applied,
+    the task preset laid underneath."""
     data = upgrade_config_dict(data)
     for ov in overrides or []:
         if "=" not in ov:
@@ -603,12 +609,6 @@ def load_config(path: str | Path | None, overrides: list[str] | None = None) -> 
         _set_dotted(data, key, value)
     if overrides:
         where = f"{where} (with overrides)"
-    return config_from_dict(data, where)
-
-
-def config_from_dict(data: dict, where: str = "<dict>") -> TrainConfig:
-    """A :class:`TrainConfig` from a raw nested dict: old keys moved, the task preset laid underneath."""
-    data = upgrade_config_dict(data)
     task = data.get("task") or {}
     name = task.get("preset", TaskConfig.preset) if isinstance(task, dict) else TaskConfig.preset
     try:

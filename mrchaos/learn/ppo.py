@@ -442,7 +442,8 @@ class Trainer:
         from tqdm import tqdm
 
         total = self.cfg.collector.total_frames if self.cfg.collector.total_frames > 0 else None
-        return tqdm(total=total, initial=self.frames, unit="f", dynamic_ncols=True)
+        # The run's name, a recipe's stage inside a staged run.
+        return tqdm(total=total, initial=self.frames, unit="f", dynamic_ncols=True, desc=self.cfg.name)
 
     def _event(self, msg: str) -> None:
         log.info(msg)

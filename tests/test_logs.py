@@ -1,0 +1,41 @@
+"""The commands are quiet by default: mrchaos's progress lines, no library's INFO lines unless -v."""
+
+import logging
+
+import pytest
+import torchrl  # noqa: F401 - installs its own INFO handler on import, the noise being silenced
+
+from mrchaos.cli.logs import configure_logging
+
+
+@pytest.fixture(autouse=True)
+def _restore_logging():
+    levels = {n: logging.getLogger(n).level for n in ("", "mrchaos", "torchrl", "OpenGL")}
+    yield
+    for n, level in levels.items():
+        logging.getLogger(n).setLevel(level)
+
+
+def _emit(capfd) -> str:
+    logging.getLogger("torchrl").info("NOISE-torchrl")
+    logging.getLogger("OpenGL.acceleratesupport").info("NOISE-opengl")
+    logging.getLogger("mrchaos.learn.bc").info("PROGRESS")
+    logging.getLogger("OpenGL.acceleratesupport").warning("WARNED")
+    out = capfd.readouterr()
+    return out.out + out.err
+
+
+def test_library_info_lines_are_silent_unless_verbose(capfd):
+    configure_logging(verbose=False)
+    text = _emit(capfd)
+    assert "NOISE" not in text and "PROGRESS" in text and "WARNED" in text
+    assert not logging.getLogger("torchrl").isEnabledFor(logging.INFO)
+    configure_logging(verbose=False, progress=False)  # the bench: its own tables only
+    text = _emit(capfd)
+    assert "NOISE" not in text and "PROGRESS" not in text and "WARNED" in text
+    configure_logging(verbose=True)
+    text = _emit(capfd)
+    assert "NOISE-opengl" in text and "PROGRESS" in text
+    # torchrl's own handler writes to the stream it found at import, out of capfd's sight: its level
+    # is what lets its lines through.
+    assert logging.getLogger("torchrl").isEnabledFor(logging.INFO)
