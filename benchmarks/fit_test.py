@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from mrchaos.bench.benchmark import Bench, resolve_policy
 from mrchaos.core.atomic import write_atomic
 from mrchaos.env.oracle import oracle_actions
 from mrchaos.env.tangram import TangramEnv
@@ -91,6 +92,21 @@ def _bench(cfg: TrainConfig, actor, sets: dict) -> dict[str, dict[str, float]]:
     return out
 
 
+def _bench_policy(spec: str, sets: dict) -> dict[str, dict[str, float]]:
+    """A trained policy (shipped or a run, re-ranked ones played as the bench plays them) on the
+    same sets, greedy, with the bench's env for it."""
+    bench = Bench(None, ["Random"], random_objects=1, seed=2024, num_worlds=100)
+    policy = resolve_policy(spec)
+    env = bench.make_env(policy)
+    actor = bench.actor(policy, env)
+    out = {}
+    for name, (poses, mirrored) in sets.items():
+        res = evaluate(env, poses, actor, mirrored=mirrored)
+        out[name] = {"rela": 100 * float(res.rela.mean()), "iou": 100 * float(res.iou.mean()), "n": len(poses)}
+    env.close()
+    return out
+
+
 def _target_entropy(shard: Path, temperature: float) -> float:
     """Mean entropy (nats) of the dense targets softmax(coverage / T) of a shard's states: the
     cross-entropy loss cannot go below it, so loss minus it is how far a network is from fitting."""
@@ -106,11 +122,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--epochs", type=int, default=20)
     ap.add_argument("--eval", type=int, default=100, help="objects per bench set")
     ap.add_argument("--nets", default="today,attention,unet", help=f"comma-separated, of {sorted(NETS)}")
+    ap.add_argument(
+        "--policy",
+        action="append",
+        default=[],
+        help="also bench a trained policy on the same sets (a shipped name or a run; repeatable)",
+    )
     ap.add_argument("--out", default="runs/fit")
     ap.add_argument("overrides", nargs="*", help="key=value settings for every candidate")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    names = args.nets.split(",")
+    names = [n for n in args.nets.split(",") if n]  # none: only --policy rows
     unknown = [n for n in names if n not in NETS]
     if unknown:
         ap.error(f"unknown networks {unknown}; known: {sorted(NETS)}")
@@ -130,6 +152,9 @@ def main(argv: list[str] | None = None) -> int:
         results = json.loads(summary.read_text())
     if "oracle" not in results:
         results["oracle"] = {"sets": _bench(base, lambda env, td: oracle_actions(env), sets)}
+    for spec in args.policy:
+        results[spec] = {"sets": _bench_policy(spec, sets)}
+        write_atomic(summary, json.dumps(results, indent=1) + "\n")
     data = out / "data" / "round_0.pt"
     for name in names:
         cfg = load_config(args.config, shared + NETS[name] + [f"name=fit_{name}"])
@@ -172,8 +197,8 @@ def main(argv: list[str] | None = None) -> int:
         if name == "target_entropy":
             continue
         cells = " | ".join(f"{r['sets'][s]['rela']:.1f} / {r['sets'][s]['iou']:.1f}" for s in SETS)
-        if name == "oracle":
-            print(f"| oracle | | | | {cells} |")
+        if "loss" not in r:  # the oracle, or a trained policy
+            print(f"| {name} | | | | {cells} |")
         else:
             print(
                 f"| {name} | {r['parameters']:,} | {r['first_loss']:.2f} → {r['loss']:.2f} | "

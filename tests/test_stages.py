@@ -17,9 +17,9 @@ ROOT = Path(__file__).resolve().parents[1]
 TINY_NET = ["policy.channels=[8,16,16]", "policy.hidden=64", "policy.context=8", "precision=fp32"]
 
 
-def _recipe(tmp_path: Path, stages: list[dict], name: str = "chain") -> Path:
+def _recipe(tmp_path: Path, stages: list[dict], name: str = "chain", **extra) -> Path:
     path = tmp_path / f"{name}.yaml"
-    path.write_text(yaml.safe_dump({"name": name, "runs_dir": str(tmp_path / "runs"), "stages": stages}))
+    path.write_text(yaml.safe_dump({"name": name, "runs_dir": str(tmp_path / "runs"), "stages": stages, **extra}))
     return path
 
 
@@ -50,6 +50,13 @@ def test_stages_chain_their_folders_and_weights_and_take_scoped_overrides(tmp_pa
     assert {s.config.threads for s in rec.stages} == {1}
     assert [s.config.name for s in rec.stages] == ["a", "b", "c"]
     assert load_recipe(path, ["name=other"]).run_dir == tmp_path / "runs" / "other"
+    # The recipe's own overrides go to every stage, under each stage's.
+    stages = [THREE[0], {**THREE[1], "overrides": {"policy.global_view": "none"}}, THREE[2]]
+    rec = load_recipe(_recipe(tmp_path, stages, overrides={"policy.global_view": "unet", "threads": 3}))
+    assert [s.config.policy.global_view for s in rec.stages] == ["unet", "none", "unet"]
+    assert {s.config.threads for s in rec.stages} == {3}
+    with pytest.raises(ConfigError, match="unknown recipe keys"):
+        load_recipe(_recipe(tmp_path, THREE, epochs=3))
 
 
 @pytest.mark.parametrize(

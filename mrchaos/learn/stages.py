@@ -16,6 +16,8 @@ the previous stage's checkpoint::
         init_from: "@dense"            # an earlier stage instead of the previous one
         overrides:
           rerank.data: ["@exit"]       # "@stage" is that stage's folder
+    overrides:                         # every stage's, under its own
+      threads: 2
 
 Why the chain lives here and not in the stage configs: a stage config's own ``init_from`` may name
 a shipped policy (so that it also runs alone), but a recipe must reproduce the shipped weights
@@ -56,6 +58,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: The keys of a recipe file (``overrides``: for every stage, under each stage's own).
+RECIPE_KEYS = ("name", "runs_dir", "overrides", "stages")
 #: The keys of a stage entry in a recipe file.
 STAGE_KEYS = ("name", "config", "overrides", "init_from")
 #: A stage's result file: present once the stage has finished.
@@ -154,9 +158,12 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> Recipe:
     command line's applied, its folder inside the run and its ``init_from`` chained."""
     path = Path(path)
     data = _read_yaml(path)
-    unknown = sorted(set(data) - {"name", "runs_dir", "stages"})
+    unknown = sorted(set(data) - set(RECIPE_KEYS))
     if unknown:
-        raise ConfigError(f"{path}: unknown recipe keys {unknown} (a recipe has name, runs_dir and stages)")
+        raise ConfigError(f"{path}: unknown recipe keys {unknown} (known: {', '.join(RECIPE_KEYS)})")
+    common = data.get("overrides") or {}
+    if not isinstance(common, dict):
+        raise ConfigError(f"{path}: overrides must be a mapping of dotted keys to values")
     entries = data.get("stages")
     if not isinstance(entries, list) or not entries:
         raise ConfigError(f"{path}: stages must be a non-empty list")
@@ -180,6 +187,7 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> Recipe:
         ovs = e.get("overrides") or {}
         if not isinstance(ovs, dict):
             raise ConfigError(f"{where}: overrides must be a mapping of dotted keys to values")
+        ovs = common | ovs
         stage_ovs = [
             f"{k}={yaml.safe_dump(_resolve_refs(v, folders, where), default_flow_style=True).strip()}"
             for k, v in ovs.items()
