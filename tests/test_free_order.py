@@ -413,7 +413,7 @@ def test_a_seconds_long_free_order_dense_run_is_benched_in_free_order(tmp_path: 
     )
     res = json.loads((planned / "results.json").read_text())
     assert "lookahead 2" in next(iter(res["policies"].values()))["label"]
-    # Free order takes dense targets only, and no planner rounds.
+    # Free order takes dense targets only.
     assert train_main([*small, "bc.targets=oracle", "name=oracle"]) == 2
     assert "bc.targets: dense" in capsys.readouterr().err
 
@@ -466,3 +466,53 @@ def test_the_lookahead_planner_weighs_the_piece_choice_in_free_order() -> None:
     planned = evaluate(env, targets, Lookahead.replay(chosen, env), mirrored=mirrored)
     assert (np.sort(planned.order, 1) == np.arange(7)).all()
     assert planned.iou.mean() >= greedy.iou.mean() - 1e-6  # it keeps the greedy candidate when nothing beats it
+
+
+def test_expert_iteration_in_free_order_ranks_candidates_that_name_a_choosable_piece(tmp_path: Path) -> None:
+    """conf/exit.yaml with env.order: free: the planner's candidates are (piece, x, y, orientation),
+    each naming a piece the state allows; the shard keeps what the policy reads (the pieces left)
+    and the free-order dense label beside them, and the ranking loss trains on them."""
+    import csv
+
+    from mrchaos.cli.train import main as train_main
+
+    root = Path(__file__).resolve().parents[1]
+    args = [
+        str(root / "conf" / "exit.yaml"),
+        f"runs_dir={tmp_path}",
+        "init_from=null",
+        "env.order=free",
+        "bc.objects=6",
+        "bc.epochs=1",
+        "exit.rounds=1",
+        "exit.objects=4",
+        "exit.k=3",
+        "exit.epochs=2",
+        "exit.dense=1",
+        "env.num_worlds=12",
+        "precision=fp32",
+        "policy.channels=[8,16,16]",
+        "policy.hidden=64",
+        "policy.context=8",
+        "optim.lr=1e-3",
+        "--eval=0",
+    ]
+    assert train_main(args) == 0
+    run = tmp_path / "exit"
+    assert not (run / "eval.json").exists()
+    shard = torch.load(run / "data" / "round_1.pt", weights_only=True)
+    n = 4 * 7
+    assert shard["candidates"].shape == (n, 3, 4) and shard["iou"].shape == (n, 3)
+    assert shard["label"].shape == (n, 256) and shard["remaining"].shape == (n, 7)
+    rows = torch.arange(n)[:, None].expand(n, 3)
+    # Every candidate names a piece its state may choose, and one that is still to be placed.
+    assert shard["choosable"][rows, shard["candidates"][..., 0]].all()
+    assert shard["remaining"][rows, shard["candidates"][..., 0]].all()
+    # The states before the first placement hold every piece; each later one holds one fewer.
+    assert (shard["remaining"].sum(1).sort().values == torch.arange(7, 0, -1).repeat_interleave(4).sort().values).all()
+    assert not shard["iou"].isnan().any()
+    with open(run / "metrics.csv") as f:
+        metrics = list(csv.DictReader(f))
+    exit_rows = [r for r in metrics if r["kind"] == "exit"]
+    assert len(exit_rows) == 2 and int(exit_rows[0]["ranked"]) == n
+    assert float(exit_rows[0]["rank"]) > 0 and 0 <= float(exit_rows[0]["agreement"]) <= 1

@@ -23,7 +23,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("config", nargs="?", help="YAML experiment (e.g. conf/full.yaml)")
     ap.add_argument("overrides", nargs="*", help="dotted overrides, e.g. optim.lr=1e-4 env.num_worlds=64")
     ap.add_argument("--resume", metavar="RUN_DIR", help="continue the run in this folder from its last checkpoint")
-    ap.add_argument("--eval", type=int, default=200, help="Random objects for the final greedy evaluation (0: skip)")
+    ap.add_argument(
+        "--eval",
+        type=int,
+        help="Random objects for the final greedy evaluation (default 200 after PPO, 100 after supervision; 0: skip)",
+    )
     ap.add_argument("-v", "--verbose", action="store_true", help="also print the libraries' INFO lines")
     args = ap.parse_args(argv)
     configure_logging(args.verbose)

@@ -19,7 +19,8 @@ same actor as PPO's. Every epoch leaves a checkpoint, so a run resumes where it 
 
 With free order (``env.order: free``) the dense label grades the placements of every piece a state
 allows, kept as its best actions and the rest's mass (:func:`free_label`,
-:func:`free_supervised_loss`); demonstrations place the pieces in random orders.
+:func:`free_supervised_loss`); demonstrations place the pieces in random orders, and the planner's
+candidates in expert-iteration rounds name the piece with the placement.
 """
 
 from __future__ import annotations
@@ -300,7 +301,7 @@ class SupervisedRun:
         )
         if ex.rounds and cfg.env.num_worlds < ex.k:
             raise ValueError(f"exit.k={ex.k} candidates need env.num_worlds >= {ex.k}, got {cfg.env.num_worlds}")
-        self.free = cfg.env.order == "free"  # dense targets, no planner rounds (TrainConfig checks)
+        self.free = cfg.env.order == "free"  # dense targets only (TrainConfig checks)
         #: What a shard holds: with free order also the sparse label's parts and the policy's inputs.
         self.keys = SHARD_KEYS + (FREE_SHARD_KEYS if self.free else ())
         self.env = TangramEnv(dataclasses.replace(cfg.env_config(), task=cfg.task.given_targets()), seed=cfg.seed)
@@ -385,13 +386,22 @@ class SupervisedRun:
             len(lab),
         )
         assert lab.extra is not None  # on_state labelled every state
-        states = {"observation": lab.observation, "label": lab.extra}
+        if self.free:
+            assert isinstance(lab.extra, dict) and lab.remaining is not None  # free order records both
+            states = {"observation": lab.observation, **lab.extra, "remaining": lab.remaining}
+        else:
+            states = {"observation": lab.observation, "label": lab.extra}
         return self._shard(states, lab.candidates, lab.iou), f"the planner's assemblies of {what}"
 
-    def _state_label(self, env: TangramEnv, rows: np.ndarray) -> torch.Tensor:
-        """The dense or oracle label of worlds ``rows`` in their current state."""
+    def _state_label(self, env: TangramEnv, rows: np.ndarray) -> torch.Tensor | dict[str, torch.Tensor]:
+        """The dense or oracle label of worlds ``rows`` in their current state; with free order
+        :func:`free_label`'s parts and the pieces each may choose."""
+        bc = self.cfg.bc
+        if self.free:
+            label = free_label(env, bc.overlap_limit, bc.temperature, rows)
+            return label | {"choosable": torch.as_tensor(env.choosable()[rows])}
         if self.dense:
-            return _dense_label(env, self.cfg.bc.overlap_limit, rows)
+            return _dense_label(env, bc.overlap_limit, rows)
         return oracle_actions(env)[rows]
 
     def _empty_states(self) -> dict[str, torch.Tensor]:
@@ -415,7 +425,8 @@ class SupervisedRun:
     ) -> dict[str, torch.Tensor]:
         k, n = self.cfg.exit.k, len(states["observation"])
         if candidates is None or iou is None:
-            candidates = torch.zeros(n, k, 3, dtype=torch.int64)
+            # A candidate is (x, y, orientation), with free order (piece, x, y, orientation).
+            candidates = torch.zeros(n, k, 4 if self.free else 3, dtype=torch.int64)
             iou = torch.full((n, k), float("nan"))
         return {**states, "candidates": candidates, "iou": iou}
 
@@ -554,8 +565,9 @@ class SupervisedRun:
             ranked += int(has.sum())
         return {k: v / max(n, 1) for k, v in sums.items()} | {"samples": n, "ranked": ranked}
 
-    def run(self) -> dict:
-        """Label and fit every round from where the run stands; returns a summary."""
+    def run(self, n_eval: int = 100) -> dict:
+        """Label and fit every round from where the run stands, then evaluate the policy greedily on
+        ``n_eval`` Random objects (0: no evaluation); returns a summary."""
         t0 = time.perf_counter() - self.minutes * 60
         planned = max(1, sum(e for _, e in self.plan))
         if not self.shards:
@@ -597,8 +609,10 @@ class SupervisedRun:
             self._load_or_label(self.round)
             self._save()  # the round's data is written: a resume starts its epochs
         self._save()  # a run without epochs (init_from's weights, evaluated) leaves its checkpoint too
-        ev = evaluate_random(self.policy, self.cfg.env_config(), n=100)
-        write_atomic(self.run_dir / "eval.json", json.dumps(ev, indent=1) + "\n")
+        ev = {}
+        if n_eval > 0:
+            ev = evaluate_random(self.policy, self.cfg.env_config(), n=n_eval)
+            write_atomic(self.run_dir / "eval.json", json.dumps(ev, indent=1) + "\n")
         samples = sum(len(s["observation"]) for s in self.shards)
         return {
             "samples": samples,
@@ -628,7 +642,7 @@ METRIC_FIELDS = [
 ]
 
 
-def train_bc(cfg: TrainConfig, run_dir: Path, resume: bool = False) -> dict:
+def train_bc(cfg: TrainConfig, run_dir: Path, resume: bool = False, n_eval: int = 100) -> dict:
     """Train the configured network by supervision (see :class:`SupervisedRun`); writes a
-    checkpoint like PPO's after every epoch."""
-    return SupervisedRun(cfg, run_dir, resume=resume).run()
+    checkpoint like PPO's after every epoch, and evaluates on ``n_eval`` Random objects."""
+    return SupervisedRun(cfg, run_dir, resume=resume).run(n_eval)

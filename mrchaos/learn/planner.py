@@ -46,15 +46,19 @@ class PlannerLabels:
         candidates: (S, k, 3) int64 grid actions (x, y, orientation), in the policy's order
             ((S, k, 4) with free order, the piece first).
         iou: (S, k) float32 silhouette IoU at the end of each candidate's greedy completion.
-        step: (S,) int64 the step (piece index) of the state.
-        extra: (S, ...) what ``on_state`` returned for the state (e.g. dense targets), or None.
+        step: (S,) int64 the step of the state (how many pieces were placed before it).
+        extra: (S, ...) what ``on_state`` returned for the state (e.g. dense targets; a tensor, or
+            a dict of tensors whose rows line up), or None.
+        remaining: (S, P) bool with free order, the pieces not yet placed (what the policy reads
+            beside the image), else None.
     """
 
     observation: torch.Tensor
     candidates: torch.Tensor
     iou: torch.Tensor
     step: torch.Tensor
-    extra: torch.Tensor | None = None
+    extra: torch.Tensor | dict[str, torch.Tensor] | None = None
+    remaining: torch.Tensor | None = None
 
     @property
     def best(self) -> torch.Tensor:
@@ -63,6 +67,13 @@ class PlannerLabels:
 
     def __len__(self) -> int:
         return len(self.step)
+
+
+def _cat(parts: list) -> torch.Tensor | dict[str, torch.Tensor]:
+    """Tensors, or dicts of tensors (``on_state``'s answers), joined along their rows."""
+    if isinstance(parts[0], dict):
+        return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
+    return torch.cat(parts)
 
 
 class Lookahead:
@@ -107,12 +118,13 @@ class Lookahead:
         env: TangramEnv,
         targets: np.ndarray,
         mirrored: np.ndarray | None = None,
-        on_state: Callable[[TangramEnv, np.ndarray], torch.Tensor] | None = None,
+        on_state: Callable[[TangramEnv, np.ndarray], torch.Tensor | dict[str, torch.Tensor]] | None = None,
     ) -> tuple[PlannerLabels, np.ndarray]:
         """Plan ``targets`` and keep, for every step, the state, the k candidates and their
         completions' IoUs; also the plan (as :meth:`plan`). ``on_state(env, rows)`` is called at
         each planned state (k copies of each target stand in it) with the worlds of the targets'
-        first copies, and what it returns for them (one row each) is kept as ``extra``."""
+        first copies, and what it returns for them (one row each, or a dict of such) is kept as
+        ``extra``."""
         chosen, labels = self._run(env, targets, mirrored, record=True, on_state=on_state)
         assert labels is not None
         return labels, chosen
@@ -123,7 +135,7 @@ class Lookahead:
         targets: np.ndarray,
         mirrored: np.ndarray | None,
         record: bool = False,
-        on_state: Callable[[TangramEnv, np.ndarray], torch.Tensor] | None = None,
+        on_state: Callable[[TangramEnv, np.ndarray], torch.Tensor | dict[str, torch.Tensor]] | None = None,
     ) -> tuple[np.ndarray, PlannerLabels | None]:
         n, nw, p, k = len(targets), env.batch_size[0], env.num_pieces, self.k
         if nw < k:
@@ -133,7 +145,14 @@ class Lookahead:
         per = nw // k
         inputs = ["observation", *(FREE_ORDER_KEYS if env.free_order else ())]
         chosen = np.zeros((n, p, 4 if env.free_order else 3), dtype=np.int64)
-        rec: dict[str, list[torch.Tensor]] = {"observation": [], "candidates": [], "iou": [], "step": [], "extra": []}
+        rec: dict[str, list] = {
+            "observation": [],
+            "candidates": [],
+            "iou": [],
+            "step": [],
+            "extra": [],
+            "remaining": [],
+        }
         for start in range(0, n, per):
             m = min(per, n - start)
             # World i * k + c tries candidate c for target i; the rest repeat the last copy.
@@ -156,6 +175,8 @@ class Lookahead:
                             rec["observation"].append(td["observation"][first].clone())
                             rec["candidates"].append(top[first])
                             rec["step"].append(torch.full((m,), t, dtype=torch.int64))
+                            if env.free_order:
+                                rec["remaining"].append(td["remaining"][first].cpu().clone())
                             if on_state is not None:
                                 rec["extra"].append(on_state(env, first.numpy()))
                     else:
@@ -171,13 +192,14 @@ class Lookahead:
         if not record:
             return chosen, None
         # Rows in (chunk, step, target) order; each tensor's rows line up.
-        cat = {key: torch.cat(v) for key, v in rec.items() if v}
+        cat = {key: _cat(v) for key, v in rec.items() if v}
         return chosen, PlannerLabels(
             observation=cat["observation"],
             candidates=cat["candidates"],
             iou=cat["iou"],
             step=cat["step"],
             extra=cat.get("extra"),
+            remaining=cat.get("remaining"),
         )
 
     def actor(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None = None) -> Actor:

@@ -339,8 +339,9 @@ class RerankRun:
             ),
         )
 
-    def run(self) -> dict:
-        """Fit the remaining epochs, then play 100 held-out Random objects greedily; a summary."""
+    def run(self, n_eval: int = 100) -> dict:
+        """Fit the remaining epochs, then play ``n_eval`` held-out Random objects greedily (0: none);
+        a summary."""
         rc = self.cfg.rerank
         t0 = time.perf_counter() - self.minutes * 60
         train, held = self._load()
@@ -379,11 +380,15 @@ class RerankRun:
                 100 * ha,
             )
             self._save()
-        ev = evaluate_random(Reranked(self.policy, self.ranker, self.cfg.rerank.k), self.cfg.env_config(), n=100)
-        write_atomic(self.run_dir / "eval.json", json.dumps(ev, indent=1) + "\n")
+        ev = {}
+        if n_eval > 0:
+            played = Reranked(self.policy, self.ranker, self.cfg.rerank.k)
+            ev = evaluate_random(played, self.cfg.env_config(), n=n_eval)
+            write_atomic(self.run_dir / "eval.json", json.dumps(ev, indent=1) + "\n")
         return {"samples": n, "what": f"{rc.epochs} epochs of re-ranking", "loss": self.rows[-1]["loss"], **ev}
 
 
-def train_rerank(cfg: TrainConfig, run_dir: Path, resume: bool = False) -> dict:
-    """Fit the afterstate re-ranker around a trained spatial policy (see :class:`RerankRun`)."""
-    return RerankRun(cfg, run_dir, resume=resume).run()
+def train_rerank(cfg: TrainConfig, run_dir: Path, resume: bool = False, n_eval: int = 100) -> dict:
+    """Fit the afterstate re-ranker around a trained spatial policy (see :class:`RerankRun`), then
+    evaluate the re-ranked policy on ``n_eval`` Random objects (0: no evaluation)."""
+    return RerankRun(cfg, run_dir, resume=resume).run(n_eval)

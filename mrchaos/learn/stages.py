@@ -272,9 +272,10 @@ def _tagged(label: str) -> Iterator[None]:
             h.removeFilter(tag)
 
 
-def train_config(cfg: TrainConfig, run_dir: Path, resume: bool = False, n_eval: int = 200) -> dict:
+def train_config(cfg: TrainConfig, run_dir: Path, resume: bool = False, n_eval: int | None = None) -> dict:
     """Train one config in ``run_dir`` by its ``algo`` (PPO, supervision or the re-ranker) and
-    evaluate it greedily on Random objects; the result, with a one-line ``summary``."""
+    evaluate it greedily on ``n_eval`` Random objects (None: 200 after PPO, 100 after supervision;
+    0: none); the result, with a one-line ``summary``."""
     if cfg.algo == "ppo":
         from mrchaos.learn.ppo import Trainer
 
@@ -283,23 +284,26 @@ def train_config(cfg: TrainConfig, run_dir: Path, resume: bool = False, n_eval: 
         summary = f"{run_dir}: {res['iteration']} iterations, {res['frames']} frames"
         if res["stopped"]:
             return res | {"summary": summary + " (stopped by signal)"}
-        if n_eval > 0:
-            ev = trainer.finish(n_eval)
-            res |= ev
-            summary += (
-                f"; greedy on {ev['n']} Random objects: Rela {ev['rela']:.3f}  Final {ev['final']:.3f}  "
-                f"IoU {ev['iou']:.3f}  strict Rela {ev['strict_rela']:.3f}"
-            )
-        return res | {"summary": summary}
+        n = 200 if n_eval is None else n_eval
+        if n > 0:
+            res |= trainer.finish(n)
+        return res | {"summary": summary + _greedy(res)}
     from mrchaos.learn.bc import train_bc
     from mrchaos.learn.rerank import train_rerank
 
-    res = dict((train_bc if cfg.algo == "bc" else train_rerank)(cfg, run_dir, resume=resume))
-    summary = (
-        f"{run_dir}: supervised on {res['samples']} labelled steps ({res['what']}), final loss "
-        f"{res['loss']:.3f}; greedy on {res['n']} Random objects: Rela {res['rela']:.3f} Final {res['final']:.3f}"
+    train = train_bc if cfg.algo == "bc" else train_rerank
+    res = dict(train(cfg, run_dir, resume=resume, n_eval=100 if n_eval is None else n_eval))
+    summary = f"{run_dir}: supervised on {res['samples']} labelled steps ({res['what']}), final loss {res['loss']:.3f}"
+    return res | {"stopped": False, "summary": summary + _greedy(res)}
+
+
+def _greedy(res: dict) -> str:
+    if "rela" not in res:
+        return "; not evaluated"
+    return (
+        f"; greedy on {res['n']} Random objects: Rela {res['rela']:.3f}  Final {res['final']:.3f}  "
+        f"IoU {res['iou']:.3f}  strict Rela {res['strict_rela']:.3f}"
     )
-    return res | {"stopped": False, "summary": summary}
 
 
 #: How one stage is trained: (config, its folder, resume) -> its result (a JSON-able dict, with
