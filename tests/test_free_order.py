@@ -474,7 +474,9 @@ def test_expert_iteration_in_free_order_ranks_candidates_that_name_a_choosable_p
     and the free-order dense label beside them, and the ranking loss trains on them."""
     import csv
 
+    from mrchaos.bench.benchmark import Bench, resolve_policy
     from mrchaos.cli.train import main as train_main
+    from mrchaos.learn.rerank import Reranked
 
     root = Path(__file__).resolve().parents[1]
     args = [
@@ -516,3 +518,28 @@ def test_expert_iteration_in_free_order_ranks_candidates_that_name_a_choosable_p
     exit_rows = [r for r in metrics if r["kind"] == "exit"]
     assert len(exit_rows) == 2 and int(exit_rows[0]["ranked"]) == n
     assert float(exit_rows[0]["rank"]) > 0 and 0 <= float(exit_rows[0]["agreement"]) <= 1
+
+    # The re-ranker learns the planner's judgement of those candidates, and plays in free order.
+    rerank = [
+        str(root / "conf" / "rerank.yaml"),
+        f"runs_dir={tmp_path}",
+        f"init_from={run}",
+        f"rerank.data=[{run}]",
+        "rerank.held_out=0",
+        "rerank.k=3",
+        "rerank.width=8",
+        "rerank.epochs=2",
+        "rerank.batch=8",
+        "env.order=free",
+        "env.num_worlds=6",
+        "--eval=0",
+    ]
+    assert train_main(rerank) == 0
+    with open(tmp_path / "rerank" / "metrics.csv") as f:
+        assert [r["epoch"] for r in csv.DictReader(f)] == ["1", "2"]
+    spec = resolve_policy(str(tmp_path / "rerank"))
+    bench = Bench(None, ["Random"], random_objects=3, seed=1, num_worlds=3, order="free")
+    env = bench.make_env(spec)
+    assert isinstance(bench.actor(spec, env), Reranked) and env.free_order
+    res = evaluate(env, bench.targets["Random"][0][1], bench.actor(spec, env))
+    assert (np.sort(res.order, 1) == np.arange(7)).all()

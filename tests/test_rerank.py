@@ -13,12 +13,15 @@ import torch
 
 from mrchaos.bench.benchmark import Bench, resolve_policy
 from mrchaos.cli.train import main as train_main
+from mrchaos.env.actions import ActionGrid
 from mrchaos.env.oracle import oracle_actions
-from mrchaos.env.tangram import EnvConfig, TangramEnv
+from mrchaos.env.tangram import FREE_ORDER_KEYS, EnvConfig, TangramEnv
 from mrchaos.learn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from mrchaos.learn.evaluate import evaluate, policy_actor
 from mrchaos.learn.planner import Lookahead
-from mrchaos.learn.rerank import Reranked, candidate_footprints, planner_states, reranked_actor
+from mrchaos.learn.policy import PolicyConfig, build_actor_critic
+from mrchaos.learn.rerank import AfterstateRanker, Reranked, candidate_footprints, planner_states, reranked_actor
+from mrchaos.tasks.chaos import ChaosConfig, generate
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_NET = ["policy.channels=[8,16,16]", "policy.hidden=64", "policy.context=8", "precision=fp32"]
@@ -35,6 +38,48 @@ def test_a_candidate_footprint_is_where_the_env_puts_the_piece() -> None:
         new = after & ~before
         # The same polygon rasterised twice: equal up to the pixels its edges cut.
         assert (foot ^ new).sum((1, 2)).max() <= 0.08 * new.sum((1, 2)).min()
+
+
+def test_free_order_candidates_with_the_flip_name_the_piece_and_the_face_the_env_places() -> None:
+    """With free order and the flip a candidate is (piece, x, y, orientation and face): the footprint
+    drawn for it is the piece, on the face, that the env then places; the re-ranked actor proposes
+    only pieces the state allows, and the env places the piece its choice names."""
+    env = TangramEnv(EnvConfig(num_worlds=6, order="free", grid=ActionGrid(flip=True)), seed=3)
+    chiral = int(np.flatnonzero(env.piece_set.chiral)[0])
+    targets, _, mirrored = generate(env.piece_set, 6, np.random.default_rng(4), ChaosConfig(mirror_prob=1.0), env.view)
+    assert mirrored[:, chiral].all()
+    td = env.reset_to(targets, mirrored)
+    # The turned-over piece first, at the oracle's action: its orientation index names the back face.
+    before = td["observation"][:, 1] > 0
+    a = oracle_actions(env, np.full(6, chiral))
+    assert (a[:, 0] == chiral).all() and env.grid.mirrored(a[:, 1:].numpy()).all()
+    foot = candidate_footprints(env.piece_set, env.grid, env.view, a[:, None])[:, 0]
+    face_up = a.clone()
+    face_up[:, 3] -= env.grid.ntheta
+    wrong = candidate_footprints(env.piece_set, env.grid, env.view, face_up[:, None])[:, 0]
+    td = env.step(td.set("action", a))["next"]
+    new = (td["observation"][:, 1] > 0) & ~before
+    # The same polygon rasterised twice: equal up to the pixels its edges cut; the other face is not.
+    assert ((foot ^ new).sum((1, 2)) <= 0.08 * new.sum((1, 2))).all()
+    assert ((wrong ^ new).sum((1, 2)) > 0.3 * new.sum((1, 2))).all()
+
+    torch.manual_seed(0)
+    cfg = PolicyConfig(name="spatial", channels=[8, 16, 16], hidden=64, context=8, mode_window=3)
+    policy = build_actor_critic(cfg, env.grid, env.view, env.action_spec, pieces=env.num_pieces).get_policy_operator()
+    actor = Reranked(policy, AfterstateRanker(8, env.view.size), 4)
+    for _ in range(2):
+        td = td.select("observation", *FREE_ORDER_KEYS)
+        cand, scores = actor.scores(env, td)
+        assert cand.shape == (6, 4, 4)
+        rows = np.arange(6)[:, None]
+        assert env.choosable()[rows, cand[..., 0].numpy()].all()
+        choice = actor(env, td)
+        assert torch.equal(choice, cand[torch.arange(6), scores.argmax(1)])
+        left = td["remaining"].clone()
+        td = env.step(td.set("action", choice))["next"]
+        placed = left & ~td["remaining"]
+        assert placed.sum(1).eq(1).all() and placed[torch.arange(6), choice[:, 0]].all()
+    env.close()
 
 
 @pytest.fixture(scope="module")

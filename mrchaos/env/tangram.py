@@ -64,7 +64,16 @@ from mrchaos.sim.scene import SceneConfig
 from mrchaos.sim.worlds import PhysicsConfig, Worlds
 from mrchaos.tasks.sampler import TargetBatch, TargetSampler, TaskConfig
 
-__all__ = ["EnvConfig", "NoiseConfig", "TangramEnv", "OracleTargets", "ROBOT_FAILURES", "ORDERS", "FREE_ORDER_KEYS"]
+__all__ = [
+    "EnvConfig",
+    "NoiseConfig",
+    "TangramEnv",
+    "OracleTargets",
+    "ROBOT_FAILURES",
+    "ORDERS",
+    "FREE_ORDER_KEYS",
+    "free_order_inputs",
+]
 
 #: Failure flags of robot placement in the step info (always False with teleport placement).
 ROBOT_FAILURES = ("unreachable", "missed", "dropped", "collision", "flip_failed")
@@ -72,6 +81,16 @@ ROBOT_FAILURES = ("unreachable", "missed", "dropped", "collision", "flip_failed"
 ORDERS = ("fixed", "free")
 #: What free order adds to the observation, beside the image: the pieces left and the action mask.
 FREE_ORDER_KEYS = ("remaining", "action_mask")
+
+
+def free_order_inputs(remaining: torch.Tensor, choosable: torch.Tensor, grid: ActionGrid) -> dict[str, torch.Tensor]:
+    """What a free-order policy reads beside the image, for stored states: ``remaining`` (N, P) and
+    the ``action_mask`` whose piece part is ``choosable`` (N, P) and whose x, y and orientation
+    parts allow everything (as the env's own observation does in a world still assembling)."""
+    rest = torch.ones(len(choosable), int(sum(grid.nvec)), dtype=torch.bool, device=choosable.device)
+    return {"remaining": remaining, "action_mask": torch.cat([choosable.bool(), rest], 1)}
+
+
 #: Where the env's wall-clock time goes (seconds, see :meth:`TangramEnv.timings`).
 TIMERS = ("physics", "images", "reward")
 

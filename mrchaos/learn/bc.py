@@ -39,7 +39,7 @@ from tensordict import TensorDict
 from mrchaos.core.atomic import write_atomic
 from mrchaos.core.geometry import rigid_transform
 from mrchaos.env.oracle import oracle_actions, random_pieces
-from mrchaos.env.tangram import TangramEnv
+from mrchaos.env.tangram import TangramEnv, free_order_inputs
 from mrchaos.figures.figure import Figure
 from mrchaos.figures.formats import load_figures
 from mrchaos.figures.library import builtin_figures
@@ -515,9 +515,7 @@ class SupervisedRun:
         and the action mask (the choosable pieces; every x, y and orientation allowed)."""
         td = TensorDict(observation=data["observation"][idx], batch_size=[len(idx)])
         if self.free:
-            choosable = data["choosable"][idx]
-            rest = torch.ones(len(idx), int(sum(self.env.grid.nvec)), dtype=torch.bool)
-            td.update(remaining=data["remaining"][idx], action_mask=torch.cat([choosable, rest], 1))
+            td.update(free_order_inputs(data["remaining"][idx], data["choosable"][idx], self.env.grid))
         return td.to(self.device)
 
     def _fit_epoch(self, data: dict[str, torch.Tensor], planned: int, sup_weight: float = 1.0) -> dict:

@@ -140,8 +140,6 @@ class Lookahead:
         n, nw, p, k = len(targets), env.batch_size[0], env.num_pieces, self.k
         if nw < k:
             raise ValueError(f"lookahead k={k} needs at least k worlds, the env has {nw}")
-        if env.free_order and self.reranked is not None:
-            raise ValueError("the re-ranker ranks placements in the set's order: no lookahead around it in free order")
         per = nw // k
         inputs = ["observation", *(FREE_ORDER_KEYS if env.free_order else ())]
         chosen = np.zeros((n, p, 4 if env.free_order else 3), dtype=np.int64)

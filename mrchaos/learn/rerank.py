@@ -34,7 +34,7 @@ from torch import nn
 from mrchaos.core.atomic import write_atomic
 from mrchaos.core.raster import View, rasterize
 from mrchaos.env.actions import ActionGrid
-from mrchaos.env.tangram import TangramEnv
+from mrchaos.env.tangram import FREE_ORDER_KEYS, TangramEnv, free_order_inputs
 from mrchaos.figures.pieces import PieceSet, get_piece_set
 from mrchaos.learn.checkpoint import (
     CheckpointError,
@@ -111,13 +111,21 @@ class AfterstateRanker(nn.Module):
 
 
 def candidate_footprints(
-    piece_set: PieceSet, grid: ActionGrid, view: View, candidates: torch.Tensor, piece: torch.Tensor
+    piece_set: PieceSet, grid: ActionGrid, view: View, candidates: torch.Tensor, piece: torch.Tensor | None = None
 ) -> torch.Tensor:
-    """(S, k, H, W) bool: the footprint of ``piece[s]`` at each grid action ``candidates[s]`` (S, k, 3),
-    rasterised in the view (turned over where the action says so)."""
+    """(S, k, H, W) bool: each candidate's piece footprint, rasterised in the view where the
+    candidate puts it, turned over where its orientation index says so. ``candidates`` (S, k, 3)
+    are grid actions of ``piece[s]`` (the set's order), or (S, k, 4) name their piece first (free
+    order, where ``piece`` is not needed)."""
     s, k = candidates.shape[:2]
-    act = candidates.reshape(-1, 3).cpu().numpy()
-    which = np.repeat(piece.cpu().numpy(), k)
+    if candidates.shape[-1] == 4:
+        which = candidates[..., 0].reshape(-1).cpu().numpy()
+        act = candidates[..., 1:].reshape(-1, 3).cpu().numpy()
+    else:
+        if piece is None:
+            raise ValueError("grid actions (x, y, orientation) need the piece they place")
+        which = np.repeat(piece.cpu().numpy(), k)
+        act = candidates.reshape(-1, 3).cpu().numpy()
     rows = np.arange(len(act))
     mirrored = grid.mirrored(act) & piece_set.chiral[which]
     poses = np.zeros((len(act), len(piece_set), 3))
@@ -136,8 +144,10 @@ def candidate_footprints(
 
 def planner_states(run: Path, extra: tuple[str, ...] = ()) -> list[dict[str, torch.Tensor]]:
     """The planner-labelled states of an expert-iteration run, one dict per data shard that has
-    them (in round order): ``observation``, ``candidates``, ``iou``, ``step`` (the piece each
-    state places) and the shard keys in ``extra`` (e.g. ``label``, the dense targets)."""
+    them (in round order): ``observation``, ``candidates``, ``iou``, ``step`` (how many pieces were
+    placed before the state: the piece it places in the set's order), with free order the policy's
+    other inputs (``remaining``, ``choosable``), and the shard keys in ``extra`` (e.g. ``label``,
+    the dense targets)."""
     if not (run / "config.yaml").exists():
         raise CheckpointError(f"{run}: not a run folder (no config.yaml)")
     cfg = load_config(run / "config.yaml")
@@ -161,7 +171,8 @@ def planner_states(run: Path, extra: tuple[str, ...] = ()) -> list[dict[str, tor
         )
         if len(step) != n:
             raise CheckpointError(f"{path}: {n} planned states are not whole episodes of {p} pieces")
-        out.append({k: shard[k][keep] for k in ("observation", "candidates", "iou", *extra)})
+        inputs = ("remaining", "choosable") if cfg.env.order == "free" else ()
+        out.append({k: shard[k][keep] for k in ("observation", "candidates", "iou", *inputs, *extra)})
         out[-1]["step"] = step
     if not out:
         raise CheckpointError(f"{run / 'data'}: no data shard with planner-labelled states (exit.rounds: 0?)")
@@ -191,21 +202,22 @@ class Reranked:
         self.policy, self.ranker, self.k = policy, ranker.eval(), k
 
     def scores(self, env: TangramEnv, td: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
-        """Each world's candidates (N, k, 3) and the re-ranker's scores of them (N, k)."""
+        """Each world's candidates (N, k, 3), with free order (N, k, 4) naming the piece first, and
+        the re-ranker's scores of them (N, k)."""
         device = policy_device(self.policy)
         with torch.no_grad():
-            obs = td["observation"].to(device)
-            dist = self.policy.get_dist(TensorDict(observation=obs, batch_size=[len(obs)]))
+            inputs = td.select("observation", *FREE_ORDER_KEYS, strict=False).to(device)
+            dist = self.policy.get_dist(inputs)
             if not isinstance(dist, GridCategorical):
                 raise ValueError("a re-ranker needs a spatial policy (one score per grid action)")
             cand = dist.top_actions(self.k)
-            piece = torch.as_tensor(env.next_piece).clamp_max(env.num_pieces - 1)
+            piece = None if env.free_order else torch.as_tensor(env.next_piece).clamp_max(env.num_pieces - 1)
             foot = candidate_footprints(env.piece_set, env.grid, env.view, cand, piece).to(device)
-            return cand, self.ranker(obs, foot, dist.scores_at(cand))
+            return cand, self.ranker(inputs["observation"], foot, dist.scores_at(cand))
 
     def ranked(self, env: TangramEnv, td: TensorDict) -> torch.Tensor:
-        """(N, k, 3) each world's candidates in the re-ranker's order, best first (ties keep the
-        policy's order)."""
+        """(N, k, 3) each world's candidates ((N, k, 4) with free order) in the re-ranker's order,
+        best first (ties keep the policy's order)."""
         cand, s = self.scores(env, td)
         order = torch.sort(s, dim=1, descending=True, stable=True).indices
         return cand.gather(1, order[..., None].expand_as(cand))
@@ -241,8 +253,6 @@ class RerankRun:
             raise ValueError("algo: rerank re-ranks a trained spatial policy: set init_from")
         if cfg.policy.name != "spatial":
             raise ValueError("algo: rerank needs the spatial policy (the candidates are its top k)")
-        if cfg.env.order != "fixed":
-            raise ValueError("algo: rerank re-ranks placements in the set's order (env.order: fixed)")
         if not rc.data:
             raise ValueError("rerank.data must name the expert-iteration runs whose planner data it learns from")
         # The network is the initial policy's: its own config, whatever the file says.
@@ -251,7 +261,9 @@ class RerankRun:
         self.cfg, self.run_dir = cfg, Path(run_dir)
         self.ckpt = start_run(cfg, self.run_dir, resume)
         self.env = TangramEnv(dataclasses.replace(cfg.env_config(), task=cfg.task.given_targets()), seed=cfg.seed)
-        self.ac = build_actor_critic(cfg.policy, self.env.grid, self.env.view, self.env.action_spec)
+        # Free order: the policy also reads the pieces left and proposes (piece, x, y, orientation).
+        pieces = self.env.num_pieces if self.env.free_order else 0
+        self.ac = build_actor_critic(cfg.policy, self.env.grid, self.env.view, self.env.action_spec, pieces)
         load_weights(self.ac, init, self.env)
         self.ac.eval()
         self.policy = self.ac.get_policy_operator()
@@ -284,7 +296,9 @@ class RerankRun:
     def _prepare(self, shards: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
         data = {key: torch.cat([s[key] for s in shards]) for key in shards[0]}
         e = self.env
-        data["footprints"] = candidate_footprints(e.piece_set, e.grid, e.view, data["candidates"], data["step"])
+        # In the set's order a state's step is its piece; free order's candidates name theirs.
+        piece = None if e.free_order else data["step"]
+        data["footprints"] = candidate_footprints(e.piece_set, e.grid, e.view, data["candidates"], piece)
         data["prior"] = self._prior(data)
         return data
 
@@ -293,9 +307,11 @@ class RerankRun:
         out = []
         with torch.no_grad():
             for i in range(0, len(data["iou"]), 512):
-                obs = data["observation"][i : i + 512]
-                dist = self.policy.get_dist(TensorDict(observation=obs, batch_size=[len(obs)]))
-                out.append(dist.scores_at(data["candidates"][i : i + 512]))
+                sl = slice(i, i + 512)
+                td = TensorDict(observation=data["observation"][sl], batch_size=[len(data["observation"][sl])])
+                if self.env.free_order:
+                    td.update(free_order_inputs(data["remaining"][sl], data["choosable"][sl], self.env.grid))
+                out.append(self.policy.get_dist(td).scores_at(data["candidates"][sl]))
         return torch.cat(out)
 
     def _scores(self, data: dict[str, torch.Tensor]) -> torch.Tensor:
