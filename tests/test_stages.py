@@ -85,15 +85,16 @@ class _Killed(Exception):
     pass
 
 
-def _fake_trainer(calls: list, kill: str | None = None):
+def _fake_trainer(calls: list, kill: str | int | None = None):
     """Stands in for training: records each call, leaves a checkpoint holding the stage's name and
-    its init_from, and is killed in stage ``kill`` after that stage's first checkpoint."""
+    its init_from, and is killed after that checkpoint in stage ``kill`` (a config's name, or the
+    n-th call)."""
 
     def train(cfg, run_dir: Path, resume: bool) -> dict:
         calls.append((cfg.name, resume))
         (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
         torch.save({"stage": cfg.name, "init_from": cfg.init_from}, run_dir / "checkpoints" / "last.pt")
-        if cfg.name == kill:
+        if kill in (cfg.name, len(calls)):
             raise _Killed
         return {"stopped": False, "summary": cfg.name}
 
@@ -126,6 +127,31 @@ def test_a_recipe_killed_in_its_second_stage_resumes_there_and_does_not_rerun_th
     calls.clear()
     run_recipe(resume_recipe(run), _fake_trainer(calls), resume=True)
     assert calls == []
+
+
+def test_a_stage_that_continues_another_resumes_its_run_with_new_settings(tmp_path):
+    stages = [THREE[0], {"name": "more", "continues": "@a", "overrides": {"bc.dagger_rounds": 3}}]
+    path = _recipe(tmp_path, stages)
+    rec = load_recipe(path, ["more:bc.dagger_epochs=5"])
+    a, more = rec.stages
+    assert more.run_dir == a.run_dir and more.continues and more.marker != a.marker
+    assert (more.config.bc.dagger_rounds, more.config.bc.dagger_epochs) == (3, 5)
+    assert a.config.bc.dagger_rounds != 3 and more.config.bc.objects == a.config.bc.objects
+    calls: list = []
+    with pytest.raises(_Killed):
+        run_recipe(rec, _fake_trainer(calls, kill=2))
+    # The fake trainer records the config's name: the continued run keeps the first stage's.
+    assert calls == [("a", False), ("a", True)] and a.done and not more.done
+    calls.clear()
+    run_recipe(resume_recipe(rec.run_dir), _fake_trainer(calls), resume=True)
+    assert calls == [("a", True)] and more.done
+    for bad, message in [
+        ({"name": "x", "continues": "@nope"}, "earlier stage"),
+        ({"name": "x", "continues": "@a", "init_from": "@a"}, "not init_from"),
+        ({"name": "x", "continues": "@a", "config": "c.yaml"}, "a config or the stage it continues"),
+    ]:
+        with pytest.raises(ConfigError, match=message):
+            load_recipe(_recipe(tmp_path, [THREE[0], bad]))
 
 
 def test_a_moved_run_resumes_in_its_new_folder(tmp_path):
@@ -169,11 +195,11 @@ def test_a_two_stage_recipe_trains_the_second_stage_from_the_first_ones_weights(
     assert train_main(["--resume", str(run)]) == 0
 
 
-@pytest.mark.parametrize("name", ["rerank", "flip", "dense_ppo"])
+@pytest.mark.parametrize("name", ["rerank", "flip", "dense_ppo", "free", "rerank_unet"])
 def test_the_shipped_recipes_resolve_from_scratch(name):
     rec = load_recipe(ROOT / "conf" / "recipes" / f"{name}.yaml")
     assert rec.stages[0].config.init_from is None
     folders = {str(s.run_dir) for s in rec.stages}
     for s in rec.stages[1:]:
-        assert s.config.init_from in folders
+        assert s.continues or s.config.init_from in folders
         assert all(d in folders for d in s.config.rerank.data)

@@ -57,11 +57,11 @@ SHIPPED = {
     ),
     "mrchaos-free": (
         "mrchaos-free.pt",
-        "free order: dense supervision and 3 DAgger rounds, the policy picks the piece (conf/free.yaml, resumed)",
+        "free order: dense supervision and 3 DAgger rounds, the policy picks the piece (conf/recipes/free.yaml)",
     ),
     "mrchaos-fixed-twin": (
         "mrchaos-fixed-twin.pt",
-        "mrchaos-free's twin in the set's order (conf/free.yaml env.order=fixed, resumed)",
+        "mrchaos-free's twin in the set's order (conf/recipes/free.yaml env.order=fixed)",
     ),
     "mrchaos-cutlery": ("mrchaos-cutlery.pt", "MRChaos on cutlery (conf/cutlery.yaml)"),
     "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),

@@ -16,6 +16,10 @@ the previous stage's checkpoint::
         init_from: "@dense"            # an earlier stage instead of the previous one
         overrides:
           rerank.data: ["@exit"]       # "@stage" is that stage's folder
+      - name: longer
+        continues: "@rerank"           # resume that run in its folder, with more epochs
+        overrides:
+          rerank.epochs: 6
     overrides:                         # every stage's, under its own
       threads: 2
 
@@ -60,24 +64,32 @@ log = logging.getLogger(__name__)
 
 #: The keys of a recipe file (``overrides``: for every stage, under each stage's own).
 RECIPE_KEYS = ("name", "runs_dir", "overrides", "stages")
-#: The keys of a stage entry in a recipe file.
-STAGE_KEYS = ("name", "config", "overrides", "init_from")
+#: The keys of a stage entry in a recipe file (``continues``: resume an earlier stage's run in its
+#: folder with this stage's overrides, instead of a new run from a config).
+STAGE_KEYS = ("name", "config", "overrides", "init_from", "continues")
 #: A stage's result file: present once the stage has finished.
 DONE = "stage.json"
 
 
 @dataclass(frozen=True)
 class Stage:
-    """One resolved stage: its name, its folder and its config (``init_from`` already chained)."""
+    """One resolved stage: its name, its folder and its config (``init_from`` already chained).
+    ``continues``: the folder is an earlier stage's, whose run this stage resumes."""
 
     name: str
     run_dir: Path
     config: TrainConfig
+    continues: bool = False
+
+    @property
+    def marker(self) -> Path:
+        """Its result file, written when it finishes (one per stage, also in a shared folder)."""
+        return self.run_dir / (f"stage.{self.name}.json" if self.continues else DONE)
 
     @property
     def done(self) -> bool:
         """Whether the stage finished (its result is written)."""
-        return (self.run_dir / DONE).exists()
+        return self.marker.exists()
 
 
 @dataclass(frozen=True)
@@ -93,7 +105,10 @@ class Recipe:
         return {
             "name": self.name,
             "run_dir": str(self.run_dir),
-            "stages": [{"name": s.name, "config": config_to_dict(s.config)} for s in self.stages],
+            "stages": [
+                {"name": s.name, "folder": s.run_dir.name, "continues": s.continues, "config": config_to_dict(s.config)}
+                for s in self.stages
+            ],
         }
 
 
@@ -169,8 +184,8 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> Recipe:
         raise ConfigError(f"{path}: stages must be a non-empty list")
     names = []
     for i, e in enumerate(entries):
-        if not isinstance(e, dict) or not isinstance(e.get("name"), str) or "config" not in e:
-            raise ConfigError(f"{path}: stage {i + 1} needs a name and a config")
+        if not isinstance(e, dict) or not isinstance(e.get("name"), str) or ("config" in e) == ("continues" in e):
+            raise ConfigError(f"{path}: stage {i + 1} needs a name, and a config or the stage it continues")
         bad = sorted(set(e) - set(STAGE_KEYS))
         if bad:
             raise ConfigError(f"{path}: stage {e['name']!r}: unknown keys {bad} (known: {', '.join(STAGE_KEYS)})")
@@ -182,6 +197,7 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> Recipe:
     run_dir = Path(str(own.get("runs_dir", data.get("runs_dir", "runs")))) / name
     folders: dict[str, Path] = {}
     stages: list[Stage] = []
+    by_name: dict[str, Stage] = {}
     for i, e in enumerate(entries):
         where = f"{path}: stage {e['name']!r}"
         ovs = e.get("overrides") or {}
@@ -192,20 +208,35 @@ def load_recipe(path: str | Path, overrides: list[str] | None = None) -> Recipe:
             f"{k}={yaml.safe_dump(_resolve_refs(v, folders, where), default_flow_style=True).strip()}"
             for k, v in ovs.items()
         ]
-        if i == 0:
-            if e.get("init_from") is not None:
-                raise ConfigError(f"{where}: the first stage starts from scratch (a recipe reproduces its policy)")
-            init = None
+        if "continues" in e:
+            if "init_from" in e:
+                raise ConfigError(f"{where}: a stage that continues another starts from that run, not init_from")
+            ref = e["continues"]
+            if not (isinstance(ref, str) and ref.startswith("@") and ref[1:] in by_name):
+                raise ConfigError(f"{where}: continues must name an earlier stage as '@name', got {ref!r}")
+            earlier = by_name[ref[1:]]
+            try:
+                cfg = config_from_dict(config_to_dict(earlier.config), where, stage_ovs + per_stage[e["name"]])
+            except ConfigError as err:
+                raise ConfigError(f"{where}: {err}") from None
+            stage = Stage(e["name"], earlier.run_dir, cfg, continues=True)
         else:
-            init = _resolve_refs(e.get("init_from", f"@{names[i - 1]}"), folders, where)
-        try:
-            cfg = load_config(path.parent / str(e["config"]), stage_ovs + per_stage[e["name"]])
-        except ConfigError as err:
-            raise ConfigError(f"{where}: {err}") from None
-        folder = run_dir / e["name"]
-        cfg = dataclasses.replace(cfg, name=e["name"], runs_dir=str(run_dir), init_from=init)
-        stages.append(Stage(e["name"], folder, cfg))
-        folders[e["name"]] = folder
+            if i == 0:
+                if e.get("init_from") is not None:
+                    raise ConfigError(f"{where}: the first stage starts from scratch (a recipe reproduces its policy)")
+                init = None
+            else:
+                init = _resolve_refs(e.get("init_from", f"@{names[i - 1]}"), folders, where)
+            try:
+                cfg = load_config(path.parent / str(e["config"]), stage_ovs + per_stage[e["name"]])
+            except ConfigError as err:
+                raise ConfigError(f"{where}: {err}") from None
+            folder = run_dir / e["name"]
+            cfg = dataclasses.replace(cfg, name=e["name"], runs_dir=str(run_dir), init_from=init)
+            stage = Stage(e["name"], folder, cfg)
+        stages.append(stage)
+        by_name[stage.name] = stage
+        folders[stage.name] = stage.run_dir
     return Recipe(name, run_dir, tuple(stages))
 
 
@@ -222,11 +253,11 @@ def resume_recipe(run_dir: str | Path, overrides: list[str] | None = None) -> Re
         raise ConfigError(f"{run_dir}: a resumed run keeps its name and folder ({', '.join(own)} given)")
     stages = []
     for s in data["stages"]:
-        folder = run_dir / s["name"]
-        overrides_left = [] if (folder / DONE).exists() else per_stage[s["name"]]
+        folder, continues = run_dir / s.get("folder", s["name"]), bool(s.get("continues", False))
+        overrides_left = [] if Stage(s["name"], folder, TrainConfig(), continues).done else per_stage[s["name"]]
         cfg = config_from_dict(s["config"], f"{run_dir / 'config.yaml'}: stage {s['name']!r}", overrides_left)
         cfg = _moved(cfg, Path(str(data.get("run_dir", run_dir))), run_dir)
-        stages.append(Stage(s["name"], folder, cfg))
+        stages.append(Stage(s["name"], folder, cfg, continues))
     return Recipe(str(data.get("name", run_dir.name)), run_dir, tuple(stages))
 
 
@@ -329,18 +360,21 @@ def run_recipe(recipe: Recipe, train: StageRunner = train_config, resume: bool =
         label = f"{recipe.name} {i}/{len(recipe.stages)} {stage.name}"
         if stage.done:
             log.info("stage %s finished before; not run again", label)
-            results.append(json.loads((stage.run_dir / DONE).read_text()))
+            results.append(json.loads(stage.marker.read_text()))
             continue
         started = (stage.run_dir / "checkpoints" / "last.pt").exists()
         with _tagged(label):
-            start = "resuming" if started else f"starting from {stage.config.init_from or 'scratch'}"
+            if stage.continues:
+                start = "continuing the run"
+            else:
+                start = "resuming" if started else f"starting from {stage.config.init_from or 'scratch'}"
             log.info("%s in %s", start, stage.run_dir)
             res = train(stage.config, stage.run_dir, started)
         results.append(res)
         if res.get("stopped"):
             log.info("stage %s stopped; continue with --resume %s", label, recipe.run_dir)
             break
-        write_atomic(stage.run_dir / DONE, json.dumps(res, indent=1, default=str) + "\n")
+        write_atomic(stage.marker, json.dumps(res, indent=1, default=str) + "\n")
     else:
         finish_recipe(recipe)
     return results
