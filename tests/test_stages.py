@@ -154,6 +154,19 @@ def test_a_stage_that_continues_another_resumes_its_run_with_new_settings(tmp_pa
             load_recipe(_recipe(tmp_path, [THREE[0], bad]))
 
 
+def test_until_stops_after_a_stage_and_resume_goes_on(tmp_path):
+    path = _recipe(tmp_path, THREE)
+    calls: list = []
+    with pytest.raises(ConfigError, match="no stage 'z'"):
+        run_recipe(load_recipe(path), _fake_trainer(calls), until="z")
+    run_recipe(load_recipe(path), _fake_trainer(calls), until="a")
+    run = tmp_path / "runs" / "chain"
+    assert calls == [("a", False)] and not (run / "checkpoints" / "last.pt").exists()
+    run_recipe(resume_recipe(run), _fake_trainer(calls), resume=True, until="b")
+    run_recipe(resume_recipe(run), _fake_trainer(calls), resume=True)
+    assert calls == [("a", False), ("b", False), ("c", False)] and (run / "checkpoints" / "last.pt").exists()
+
+
 def test_a_moved_run_resumes_in_its_new_folder(tmp_path):
     calls: list = []
     with pytest.raises(_Killed):

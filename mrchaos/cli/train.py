@@ -28,6 +28,11 @@ def main(argv: list[str] | None = None) -> int:
         type=int,
         help="Random objects for the final greedy evaluation (default 200 after PPO, 100 after supervision; 0: skip)",
     )
+    ap.add_argument(
+        "--until",
+        metavar="STAGE",
+        help="a staged recipe: stop after this stage (--resume RUN_DIR goes on from there)",
+    )
     ap.add_argument("-v", "--verbose", action="store_true", help="also print the libraries' INFO lines")
     args = ap.parse_args(argv)
     configure_logging(args.verbose)
@@ -47,7 +52,7 @@ def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         run_dir = Path(args.resume)
         extra = ([args.config] if args.config else []) + args.overrides
         if is_recipe(run_dir / "config.yaml"):
-            return _report(run_recipe(resume_recipe(run_dir, extra), train, resume=True))
+            return _report(run_recipe(resume_recipe(run_dir, extra), train, resume=True, until=args.until))
         cfg = resume_config(run_dir)
         if extra:
             cfg = load_config(run_dir / "config.yaml", extra)
@@ -56,8 +61,10 @@ def _train(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return _report([train(cfg, run_dir, True)])
     if not args.config:
         ap.error("a config file is required (or --resume RUN_DIR)")
+    if args.until and not is_recipe(args.config):
+        ap.error("--until names a stage of a staged recipe")
     if is_recipe(args.config):
-        return _report(run_recipe(load_recipe(args.config, args.overrides), train))
+        return _report(run_recipe(load_recipe(args.config, args.overrides), train, until=args.until))
     cfg = load_config(args.config, args.overrides)
     run_dir = Path(cfg.runs_dir) / cfg.name
     if (run_dir / "checkpoints" / "last.pt").exists():

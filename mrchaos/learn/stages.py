@@ -342,11 +342,17 @@ def _greedy(res: dict) -> str:
 StageRunner = Callable[[TrainConfig, Path, bool], dict]
 
 
-def run_recipe(recipe: Recipe, train: StageRunner = train_config, resume: bool = False) -> list[dict]:
+def run_recipe(
+    recipe: Recipe, train: StageRunner = train_config, resume: bool = False, until: str | None = None
+) -> list[dict]:
     """Run the stages in order; a finished stage (``stage.json``) is not run again, a started one
     resumes from its last checkpoint. Returns each stage's result; stops after a stage that a
-    signal cut short. Once every stage has finished, the run's ``checkpoints/last.pt`` is the last
-    stage's (:func:`finish_recipe`)."""
+    signal cut short, or after stage ``until`` (a long recipe split over sessions: ``--resume``
+    goes on from there). Once every stage has finished, the run's ``checkpoints/last.pt`` is the
+    last stage's (:func:`finish_recipe`)."""
+    names = [s.name for s in recipe.stages]
+    if until is not None and until not in names:
+        raise ConfigError(f"{recipe.run_dir}: no stage {until!r} to stop after (its stages: {', '.join(names)})")
     recipe.run_dir.mkdir(parents=True, exist_ok=True)
     path = recipe.run_dir / "config.yaml"
     text = yaml.safe_dump(recipe.to_dict(), sort_keys=False)
@@ -375,6 +381,9 @@ def run_recipe(recipe: Recipe, train: StageRunner = train_config, resume: bool =
             log.info("stage %s stopped; continue with --resume %s", label, recipe.run_dir)
             break
         write_atomic(stage.marker, json.dumps(res, indent=1, default=str) + "\n")
+        if stage.name == until and i < len(recipe.stages):
+            log.info("stopped after stage %s as asked; continue with --resume %s", label, recipe.run_dir)
+            break
     else:
         finish_recipe(recipe)
     return results
