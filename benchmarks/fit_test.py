@@ -186,11 +186,15 @@ def main(argv: list[str] | None = None) -> int:
     if "target_entropy" not in results and data.exists():
         results["target_entropy"] = _target_entropy(data, base.bc.temperature)
         write_atomic(summary, json.dumps(results, indent=1) + "\n")
-    print(f"the labels' own entropy, the floor of the loss: {results.get('target_entropy', float('nan')):.2f}")
-    print(
-        f"fit test: {args.objects} {args.mode} objects ({7 * args.objects} states), {args.epochs} epochs; "
-        f"Rela / IoU, greedy, the policy alone; {torch.get_num_threads()} threads"
-    )
+    if "target_entropy" in results:
+        print(f"the labels' own entropy, the floor of the loss: {results['target_entropy']:.2f}")
+    if names:
+        print(
+            f"fit test: {args.objects} {args.mode} objects ({7 * args.objects} states), {args.epochs} epochs; "
+            f"Rela / IoU, greedy, the policy alone; {torch.get_num_threads()} threads"
+        )
+    else:
+        print(f"trained policies on the fit test's sets ({args.mode} objects for 'own'); Rela / IoU, greedy, alone")
     print("| network | params | loss (first → last) | min/epoch | " + " | ".join(SETS) + " |")
     print("|---|---|---|---|" + "---|" * len(SETS))
     for name, r in results.items():
