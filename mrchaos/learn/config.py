@@ -609,6 +609,7 @@ def config_from_dict(data: dict, where: str = "<dict>", overrides: list[str] | N
         _set_dotted(data, key, value)
     if overrides:
         where = f"{where} (with overrides)"
+        data = upgrade_config_dict(data)  # an override may use an old key too (logger.rerun=false)
     task = data.get("task") or {}
     name = task.get("preset", TaskConfig.preset) if isinstance(task, dict) else TaskConfig.preset
     try:
