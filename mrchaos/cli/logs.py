@@ -18,8 +18,10 @@ NOISY = ("torchrl", "OpenGL", "OpenGL_accelerate", "matplotlib", "PIL", "urllib3
 def configure_logging(verbose: bool = False, progress: bool = True) -> None:
     """Set up the command's logging. ``progress``: mrchaos's own INFO lines (a training run's
     rounds and stages) are shown; ``verbose``: every library's INFO lines too."""
-    fmt = "%(asctime)s %(name)s %(levelname)s %(message)s"
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format=fmt, force=True)
+    root = logging.getLogger()
+    if not root.handlers:  # a host's own handlers (pytest's, an embedding program's) are kept
+        logging.basicConfig(format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    root.setLevel(logging.INFO if verbose else logging.WARNING)
     logging.getLogger("mrchaos").setLevel(logging.INFO if verbose or progress else logging.WARNING)
     for name in NOISY:
         # torchrl's own handler would print its INFO lines whatever the root's level is.

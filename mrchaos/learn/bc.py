@@ -390,6 +390,7 @@ class SupervisedRun:
             assert isinstance(lab.extra, dict) and lab.remaining is not None  # free order records both
             states = {"observation": lab.observation, **lab.extra, "remaining": lab.remaining}
         else:
+            assert isinstance(lab.extra, torch.Tensor)  # one label tensor in the set's order
             states = {"observation": lab.observation, "label": lab.extra}
         return self._shard(states, lab.candidates, lab.iou), f"the planner's assemblies of {what}"
 

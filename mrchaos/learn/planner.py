@@ -190,13 +190,13 @@ class Lookahead:
         if not record:
             return chosen, None
         # Rows in (chunk, step, target) order; each tensor's rows line up.
-        cat = {key: _cat(v) for key, v in rec.items() if v}
+        cat = {key: torch.cat(v) for key, v in rec.items() if v and key != "extra"}
         return chosen, PlannerLabels(
             observation=cat["observation"],
             candidates=cat["candidates"],
             iou=cat["iou"],
             step=cat["step"],
-            extra=cat.get("extra"),
+            extra=_cat(rec["extra"]) if rec["extra"] else None,
             remaining=cat.get("remaining"),
         )
 
