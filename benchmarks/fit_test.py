@@ -83,7 +83,11 @@ def _bench(cfg: TrainConfig, actor, sets: dict) -> dict[str, dict[str, float]]:
     noise = dataclasses.replace(cfg.env.noise, action_xy=0.0, action_theta=0.0, camera_jitter=0.0)
     worlds = min(100, max(len(poses) for poses, _ in sets.values()))
     env_cfg = dataclasses.replace(cfg.env_config(), num_worlds=worlds, noise=noise, task=cfg.task.given_targets())
-    env = TangramEnv(env_cfg, seed=2024)
+    return _score(TangramEnv(env_cfg, seed=2024), actor, sets)
+
+
+def _score(env: TangramEnv, actor, sets: dict) -> dict[str, dict[str, float]]:
+    """Rela and IoU (%) of ``actor`` on every set, greedy; closes ``env``."""
     out = {}
     for name, (poses, mirrored) in sets.items():
         res = evaluate(env, poses, actor, mirrored=mirrored)
@@ -98,13 +102,7 @@ def _bench_policy(spec: str, sets: dict) -> dict[str, dict[str, float]]:
     bench = Bench(None, ["Random"], random_objects=1, seed=2024, num_worlds=100)
     policy = resolve_policy(spec)
     env = bench.make_env(policy)
-    actor = bench.actor(policy, env)
-    out = {}
-    for name, (poses, mirrored) in sets.items():
-        res = evaluate(env, poses, actor, mirrored=mirrored)
-        out[name] = {"rela": 100 * float(res.rela.mean()), "iou": 100 * float(res.iou.mean()), "n": len(poses)}
-    env.close()
-    return out
+    return _score(env, bench.actor(policy, env), sets)
 
 
 def _target_entropy(shard: Path, temperature: float) -> float:

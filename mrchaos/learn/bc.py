@@ -607,7 +607,8 @@ class SupervisedRun:
             self.round, self.epoch = self.round + 1, 0
             self._load_or_label(self.round)
             self._save()  # the round's data is written: a resume starts its epochs
-        self._save()  # a run without epochs (init_from's weights, evaluated) leaves its checkpoint too
+        if not self.ckpt.exists():  # a run without epochs (init_from's weights, evaluated) leaves one too
+            self._save()
         ev = {}
         if n_eval > 0:
             ev = evaluate_random(self.policy, self.cfg.env_config(), n=n_eval)

@@ -46,7 +46,10 @@ SHIPPED = {
     "mrchaos-bc-chaos": ("mrchaos-bc-chaos.pt", "BC on chaos objects (conf/bc_chaos.yaml)"),
     "mrchaos-dense": ("mrchaos-dense.pt", "dense counterfactual supervision on chaos (conf/dense.yaml)"),
     "mrchaos-dense-ppo": ("mrchaos-dense-ppo.pt", "PPO on top of mrchaos-dense (conf/recipes/dense_ppo.yaml)"),
-    "mrchaos-exit": ("mrchaos-exit.pt", "expert iteration on top of mrchaos-dense (conf/exit.yaml)"),
+    "mrchaos-exit": (
+        "mrchaos-exit.pt",
+        "expert iteration on top of mrchaos-dense (conf/recipes/rerank.yaml --until exit)",
+    ),
     "mrchaos-rerank": (
         "mrchaos-rerank.pt",
         "mrchaos-exit's top 5 re-ranked by an afterstate network (conf/recipes/rerank.yaml)",

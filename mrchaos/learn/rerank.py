@@ -154,6 +154,8 @@ def planner_states(run: Path, extra: tuple[str, ...] = ()) -> list[dict[str, tor
     per_chunk = cfg.env.num_worlds // cfg.exit.k  # targets the planner holds at once
     paths = sorted((run / "data").glob("round_*.pt"), key=lambda q: int(q.stem.split("_")[1]))
     p = len(get_piece_set(cfg.env.piece_set))
+    # Free order: what the policy reads beside the image, to score the candidates again.
+    inputs = ("remaining", "choosable") if cfg.env.order == "free" else ()
     out: list[dict[str, torch.Tensor]] = []
     for path in paths:
         try:
@@ -171,7 +173,6 @@ def planner_states(run: Path, extra: tuple[str, ...] = ()) -> list[dict[str, tor
         )
         if len(step) != n:
             raise CheckpointError(f"{path}: {n} planned states are not whole episodes of {p} pieces")
-        inputs = ("remaining", "choosable") if cfg.env.order == "free" else ()
         out.append({k: shard[k][keep] for k in ("observation", "candidates", "iou", *inputs, *extra)})
         out[-1]["step"] = step
     if not out:

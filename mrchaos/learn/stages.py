@@ -84,12 +84,16 @@ class Stage:
     @property
     def marker(self) -> Path:
         """Its result file, written when it finishes (one per stage, also in a shared folder)."""
-        return self.run_dir / (f"stage.{self.name}.json" if self.continues else DONE)
+        return _marker(self.run_dir, self.name, self.continues)
 
     @property
     def done(self) -> bool:
         """Whether the stage finished (its result is written)."""
         return self.marker.exists()
+
+
+def _marker(folder: Path, name: str, continues: bool) -> Path:
+    return folder / (f"stage.{name}.json" if continues else DONE)
 
 
 @dataclass(frozen=True)
@@ -254,7 +258,7 @@ def resume_recipe(run_dir: str | Path, overrides: list[str] | None = None) -> Re
     stages = []
     for s in data["stages"]:
         folder, continues = run_dir / s.get("folder", s["name"]), bool(s.get("continues", False))
-        overrides_left = [] if Stage(s["name"], folder, TrainConfig(), continues).done else per_stage[s["name"]]
+        overrides_left = [] if _marker(folder, s["name"], continues).exists() else per_stage[s["name"]]
         cfg = config_from_dict(s["config"], f"{run_dir / 'config.yaml'}: stage {s['name']!r}", overrides_left)
         cfg = _moved(cfg, Path(str(data.get("run_dir", run_dir))), run_dir)
         stages.append(Stage(s["name"], folder, cfg, continues))
