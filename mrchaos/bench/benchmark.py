@@ -164,6 +164,9 @@ class Bench:
         order: "fixed" (the set's order) or "free" (the policy chooses the piece too): random and
             oracle draw each piece among the allowed ones; a checkpoint keeps the order it was
             trained with, and a fixed-order one cannot play free order.
+        grid: action-grid settings (``env.grid`` keys, e.g. ``{"nx": 101, "ntheta": 24}``) for the
+            baselines, random and oracle, laid over the task's: a finer grid's ceiling. A checkpoint
+            keeps the grid it was trained on.
     """
 
     def __init__(
@@ -185,6 +188,7 @@ class Bench:
         mode_window: int | None = None,
         random_mirror: float = 0.0,
         order: str = "fixed",
+        grid: dict[str, Any] | None = None,
     ) -> None:
         if order not in ORDERS:
             raise BenchError(f"--order must be one of {ORDERS}, got {order!r}")
@@ -220,6 +224,14 @@ class Bench:
         self.piece_set = get_piece_set(self.preset.piece_set)
         if perturb_after is not None and not 0 <= perturb_after < len(self.piece_set):
             raise BenchError(f"--perturb must be a step in [0, {len(self.piece_set) - 1}], got {perturb_after}")
+        #: the baselines' action-grid keys laid over the task's (the flip added by ``flip``).
+        self.grid = dict(grid or {})
+        if "flip" in self.grid:
+            raise BenchError("the bench's grid settings take no flip key: the flip is its own switch (--flip)")
+        if flip:
+            self.grid["flip"] = True
+        # Checked here, so that a bad key fails before any policy is evaluated.
+        config_from_dict({"env": {"grid": self.grid}, "task": {"preset": task}}, "the bench's --grid settings")
         self.env_config = config_from_dict({"task": {"preset": task}}, f"task {task}").env_config()
         if not 0.0 <= random_mirror <= 1.0:
             raise BenchError(f"--random-mirror must be a probability in [0, 1], got {random_mirror}")
@@ -305,8 +317,7 @@ class Bench:
                 raise BenchError(f"{spec.path}: trained with fixed order, it does not choose pieces (--order free)")
         else:
             env["order"] = self.order
-            if self.flip:
-                env["grid"] = {"flip": True}
+            env["grid"] = dict(self.grid)
         cfg = config_from_dict({"env": env, "task": {"preset": self.task}}, f"bench env ({spec.name})").env_config()
         return TangramEnv(dataclasses.replace(cfg, task=cfg.task.given_targets()), seed=self.seed)
 
@@ -402,6 +413,8 @@ class Bench:
         results["piece_names"] = list(self.piece_set.names)
         results["placement"] = self.placement
         results["flip"] = self.flip
+        if set(self.grid) - {"flip"}:
+            results["grid"] = {k: v for k, v in self.grid.items() if k != "flip"}
         results["random_mirror"] = self.random_mirror
         results["lookahead"] = self.lookahead
         results["mode_window"] = self.mode_window

@@ -101,6 +101,14 @@ def _parser() -> argparse.ArgumentParser:
         "which piece goes next (random and oracle draw it among the pieces left). A checkpoint plays in "
         "the order it was trained with; implied when every checkpoint benched was trained with free order",
     )
+    ap.add_argument(
+        "--grid",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an action-grid setting for random and oracle, laid over the task's (repeatable; "
+        "e.g. --grid nx=101 --grid ntheta=24: a finer grid's ceiling); a checkpoint keeps its own grid",
+    )
     ap.add_argument("--out", type=Path, default=Path("runs/bench"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--worlds", type=int, default=64, help="worlds evaluated at once")
@@ -187,6 +195,7 @@ def _bench(args: argparse.Namespace) -> int:
         mode_window=args.mode_window,
         random_mirror=args.random_mirror,
         order=order,
+        grid=_grid_settings(args.grid),
     )
     for fid, why in bench.skipped:
         print(f"skipped {fid}: {why}", file=sys.stderr)
@@ -219,6 +228,19 @@ def _bench(args: argparse.Namespace) -> int:
         print(f"({len(bench.skipped)} figures skipped: see results.md)")
     print(f"wrote {args.out}/results.{{json,csv,md}} and contact_sheet.png in {time.perf_counter() - t0:.0f} s")
     return 0
+
+
+def _grid_settings(items: list[str]) -> dict:
+    """``--grid KEY=VALUE`` options as a mapping, each value read as YAML (``nx=101`` is an int)."""
+    import yaml
+
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--grid takes KEY=VALUE (an env.grid key), got {item!r}")
+        out[key.strip()] = yaml.safe_load(value)
+    return out
 
 
 def _contact_sheet(bench, specs, out: Path, per_family: int = 6) -> None:

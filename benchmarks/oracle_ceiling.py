@@ -1,0 +1,89 @@
+"""The action grid's ceiling: the oracle, snapping every true pose to the nearest grid action, for
+each task under several grids (finer positions, finer angles).
+
+It reads the solution, so it measures what a grid allows, not what a policy learns. Printed per
+task, grid and family: Final, IoU and Rela (%), and the share of placements set down onto a
+placed piece (the snapping error overlaps the neighbour). The action count is the spatial head's
+output size; dense labelling costs in proportion to it.
+
+    python benchmarks/oracle_ceiling.py                          # every task, the grids below
+    python benchmarks/oracle_ceiling.py --tasks cutlery --random-objects 400
+    python benchmarks/oracle_ceiling.py --figures ../shared/figures/mrchaos104.json --tasks tangram
+
+The same ceiling for one grid from the command line: ``mrchaos-bench --task cutlery --policy
+oracle --grid nx=101 --grid ntheta=24``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+
+from mrchaos.bench.benchmark import Bench, resolve_policy
+from mrchaos.env.actions import ActionGrid
+from mrchaos.figures.formats import load_figures
+from mrchaos.learn.config import config_from_dict
+
+#: Grids measured per task ({} is the task's own). Tangram's figures lie on 45° steps, so only
+#: its positions get finer; soda's cans are round (one angle).
+GRIDS: dict[str, list[dict]] = {
+    "tangram": [{}, {"nx": 101, "ny": 101}, {"nx": 201, "ny": 201}],
+    "cutlery": [
+        {},
+        {"nx": 101, "ny": 101},
+        {"ntheta": 24},
+        {"nx": 101, "ny": 101, "ntheta": 24},
+        {"nx": 201, "ny": 201, "ntheta": 72},
+    ],
+    "soda": [{}, {"nx": 101, "ny": 101}, {"nx": 201, "ny": 201}],
+}
+
+
+def task_grid(task: str, settings: dict) -> ActionGrid:
+    """The action grid a task gets with ``settings`` laid over its preset."""
+    cfg = config_from_dict({"env": {"grid": settings}, "task": {"preset": task}}, f"{task} grid").env_config()
+    return cfg.grid
+
+
+def ceiling(task: str, settings: dict, random_objects: int, seed: int, figure_sets=None) -> dict:
+    """The oracle's results on the task's families under one grid (``Bench.run``'s dict)."""
+    bench = Bench(figure_sets, _families(task), random_objects, seed, task=task, grid=settings)
+    return bench.run([resolve_policy("oracle")])["policies"]["oracle"]["families"]
+
+
+def _families(task: str) -> list[str]:
+    return ["Random", "H-Normal", "H-Hard", "H-Fiendish"] if task == "tangram" else ["Authored", "Random"]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--tasks", default="tangram,cutlery,soda")
+    ap.add_argument("--random-objects", type=int, default=200)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--figures", type=Path, action="append", help="tangram figure sets (default: the built-in library)")
+    args = ap.parse_args()
+    sets = [load_figures(p) for p in args.figures] if args.figures else None
+    print("| task | grid | position step (mm) | angle step (°) | actions | family | Final | IoU | Rela | onto a piece (%) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for task in args.tasks.split(","):
+        for settings in GRIDS[task]:
+            t0 = time.perf_counter()
+            grid = task_grid(task, settings)
+            fams = ceiling(task, settings, args.random_objects, args.seed, sets if task == "tangram" else None)
+            name = ", ".join(f"{k}={v}" for k, v in settings.items()) or "the task's own"
+            step = 2 * grid.half_range / (grid.nx - 1) * 1000
+            for fam, s in fams.items():
+                onto = 100 * s["contacts"]["onto_piece"] if "contacts" in s else math.nan
+                print(
+                    f"| {task} | {name} | {step:.1f} | {360 / grid.ntheta:g} | {grid.size:,} | {fam} | "
+                    f"{100 * s['final']['mean']:.1f} | {100 * s['iou']['mean']:.1f} | "
+                    f"{100 * s['rela']['mean']:.1f} | {onto:.1f} |",
+                    flush=True,
+                )
+            print(f"<!-- {task} {name}: {time.perf_counter() - t0:.0f} s -->", flush=True)
+
+
+if __name__ == "__main__":
+    main()
