@@ -3,8 +3,10 @@ each task under several grids (finer positions, finer angles).
 
 It reads the solution, so it measures what a grid allows, not what a policy learns. Printed per
 task, grid and family: Final, IoU and Rela (%), and the share of placements set down onto a
-placed piece (the snapping error overlaps the neighbour). The action count is the spatial head's
-output size; dense labelling costs in proportion to it.
+placed piece (the snapping error overlaps the neighbour). "Poses" counts the distinct actions;
+"outputs" what a policy scores for one state (a spatial head's coarse cells, plus the fine
+offsets of the one cell it chose on a refined grid). Dense labelling costs in proportion to the
+outputs a target covers.
 
     python benchmarks/oracle_ceiling.py                          # every task, the grids below
     python benchmarks/oracle_ceiling.py --tasks cutlery --random-objects 400
@@ -26,18 +28,21 @@ from mrchaos.env.actions import ActionGrid
 from mrchaos.figures.formats import load_figures
 from mrchaos.learn.config import config_from_dict
 
-#: Grids measured per task ({} is the task's own). Tangram's figures lie on 45° steps, so only
-#: its positions get finer; soda's cans are round (one angle).
+#: Grids measured per task ({} is the task's own): finer flat grids, and the coarse grid refined
+#: by a fourth, fine index (``fine_xy``, ``fine_theta``). Tangram's figures lie on 45° steps, so
+#: only its positions get finer; soda's cans are round (one angle).
 GRIDS: dict[str, list[dict]] = {
-    "tangram": [{}, {"nx": 101, "ny": 101}, {"nx": 201, "ny": 201}],
+    "tangram": [{}, {"nx": 101, "ny": 101}, {"nx": 201, "ny": 201}, {"fine_xy": 3}, {"fine_xy": 5}],
     "cutlery": [
         {},
         {"nx": 101, "ny": 101},
         {"ntheta": 24},
         {"nx": 101, "ny": 101, "ntheta": 24},
         {"nx": 201, "ny": 201, "ntheta": 72},
+        {"fine_xy": 3, "fine_theta": 3},
+        {"fine_xy": 5, "fine_theta": 9},
     ],
-    "soda": [{}, {"nx": 101, "ny": 101}, {"nx": 201, "ny": 201}],
+    "soda": [{}, {"nx": 101, "ny": 101}, {"fine_xy": 3}, {"fine_xy": 5}],
 }
 
 
@@ -65,19 +70,24 @@ def main() -> None:
     ap.add_argument("--figures", type=Path, action="append", help="tangram figure sets (default: the built-in library)")
     args = ap.parse_args()
     sets = [load_figures(p) for p in args.figures] if args.figures else None
-    print("| task | grid | position step (mm) | angle step (°) | actions | family | Final | IoU | Rela | onto a piece (%) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print(
+        "| task | grid | position step (mm) | angle step (°) | poses | outputs | family | Final | IoU | Rela "
+        "| onto a piece (%) |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for task in args.tasks.split(","):
         for settings in GRIDS[task]:
             t0 = time.perf_counter()
             grid = task_grid(task, settings)
             fams = ceiling(task, settings, args.random_objects, args.seed, sets if task == "tangram" else None)
             name = ", ".join(f"{k}={v}" for k, v in settings.items()) or "the task's own"
-            step = 2 * grid.half_range / (grid.nx - 1) * 1000
+            step = 2 * grid.half_range / (grid.nx - 1) / grid.fine_xy * 1000
+            angle = 360 / grid.ntheta / grid.fine_theta
+            outputs = grid.nx * grid.ny * grid.norient + (grid.nfine if grid.refined else 0)
             for fam, s in fams.items():
                 onto = 100 * s["contacts"]["onto_piece"] if "contacts" in s else math.nan
                 print(
-                    f"| {task} | {name} | {step:.1f} | {360 / grid.ntheta:g} | {grid.size:,} | {fam} | "
+                    f"| {task} | {name} | {step:.2f} | {angle:g} | {grid.size:,} | {outputs:,} | {fam} | "
                     f"{100 * s['final']['mean']:.1f} | {100 * s['iou']['mean']:.1f} | "
                     f"{100 * s['rela']['mean']:.1f} | {onto:.1f} |",
                     flush=True,

@@ -331,7 +331,7 @@ class Bench:
             nvec = torch.tensor(env.grid.nvec)
 
             def uniform(e: TangramEnv, td) -> torch.Tensor:
-                a = (torch.rand((e.batch_size[0], 3), generator=g) * nvec).long()
+                a = (torch.rand((e.batch_size[0], len(nvec)), generator=g) * nvec).long()
                 if e.free_order:
                     a = torch.cat([torch.as_tensor(random_pieces(e, g))[:, None], a], 1)
                 return a

@@ -16,7 +16,9 @@ Observation:
 Action:
     ``action`` int64 (N, 3): indices into the (x, y, theta) grid (``MultiCategorical``); with
     ``env.grid.flip`` the theta index also says whether a chiral piece goes down turned over.
-    With free order (N, 4): (piece, x, y, theta); an action on a masked piece is an error.
+    With free order (N, 4): (piece, x, y, theta); an action on a masked piece is an error. On a
+    refined grid (``env.grid.fine_xy``, ``fine_theta``) a last index picks the offset inside the
+    coarse cell (:class:`mrchaos.env.actions.ActionGrid`).
 Reward:
     the coverage of piece t's target slot by piece t (twins take the better slot),
     with the reference's shaping, penetration and angle switches from config; every
@@ -355,9 +357,9 @@ class TangramEnv(EnvBase):
     # ------------------------------------------------------------------ step
     def _check_action(self, action: torch.Tensor) -> np.ndarray:
         n = self.cfg.num_worlds
-        names = ("piece", "x", "y", "θ") if self.free_order else ("x", "y", "θ")
+        names = ("piece",) * self.free_order + ("x", "y", "θ") + ("fine",) * self.grid.refined
         if action.shape != (n, len(names)):
-            what = "(piece, x, y, θ)" if self.free_order else "(x, y, θ)"
+            what = "(" + ", ".join(names) + ")"
             raise ValueError(f"action must have shape ({n}, {len(names)}) {what}, got {tuple(action.shape)}")
         if action.dtype not in (torch.int64, torch.int32, torch.int16, torch.uint8):
             raise TypeError(f"action must be an integer tensor of grid indices, got {action.dtype}")

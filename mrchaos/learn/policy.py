@@ -553,6 +553,12 @@ def build_actor_critic(
     a set of that many pieces (``env.order: free``): it also reads ``remaining`` and
     ``action_mask``, and its actions are (piece, x, y, theta).
     """
+    if grid.refined:
+        # The env, the oracle and the random baseline take the fine index; no head produces it yet.
+        raise ValueError(
+            "env.grid.fine_xy and env.grid.fine_theta refine the grid for the oracle and the random "
+            "baseline only (mrchaos-bench --grid fine_xy=5); no policy acts on a refined grid yet"
+        )
     size = view.size
     obs_keys = ["observation", "remaining"] if pieces else ["observation"]
     mask_keys = ["action_mask"] if pieces else []

@@ -1,0 +1,94 @@
+"""Precision past the grid: the refined action (a fourth, fine index inside the coarse cell)."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from mrchaos.core.geometry import angle_gap
+from mrchaos.core.raster import View
+from mrchaos.env.actions import ActionGrid
+from mrchaos.env.tangram import EnvConfig, TangramEnv
+from mrchaos.learn.policy import PolicyConfig, build_actor_critic
+from mrchaos.tasks.sampler import CacheConfig, TaskConfig
+
+FINE = ActionGrid(fine_xy=5, fine_theta=9)
+
+
+def _random_actions(grid: ActionGrid, n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.stack([rng.integers(0, k, n) for k in grid.nvec], 1)
+
+
+def test_a_refined_action_has_a_fourth_index_and_its_poses_are_a_finer_grid():
+    assert FINE.nvec == (51, 51, 8, 225) and FINE.size == 51 * 51 * 8 * 225
+    assert ActionGrid().nvec == (51, 51, 8) and not ActionGrid().refined
+    pose = FINE.to_pose(_random_actions(FINE, 4000))
+    # Positions fall on a grid five times finer than 4 mm, angles on one nine times finer than 45°.
+    step = 0.2 / 50 / 5
+    assert np.allclose(np.round(pose[:, :2] / step) * step, pose[:, :2], atol=1e-12)
+    dt = 2 * math.pi / 8 / 9
+    k = (pose[:, 2] + math.pi) / dt
+    assert np.allclose(k, np.round(k), atol=1e-9)
+    # The middle offset is the coarse pose itself: the refined poses hold the coarse ones.
+    coarse = _random_actions(ActionGrid(), 100)
+    middle = np.concatenate([coarse, np.full((100, 1), FINE.nfine // 2)], 1)
+    assert np.allclose(FINE.to_pose(middle), ActionGrid().to_pose(coarse))
+
+
+def test_nearest_inverts_to_pose_and_is_never_farther_than_the_coarse_grid():
+    a = _random_actions(FINE, 2000, seed=1)
+    assert (FINE.nearest(FINE.to_pose(a)) == a).all()
+    rng = np.random.default_rng(2)
+    pose = np.stack([rng.uniform(-0.1, 0.1, 2000), rng.uniform(-0.1, 0.1, 2000), rng.uniform(-4, 4, 2000)], 1)
+    fine = FINE.to_pose(FINE.nearest(pose))
+    coarse = ActionGrid().to_pose(ActionGrid().nearest(pose))
+    assert (np.abs(fine[:, :2] - pose[:, :2]) <= np.abs(coarse[:, :2] - pose[:, :2]) + 1e-12).all()
+    assert np.abs(fine[:, :2] - pose[:, :2]).max() <= 0.004 / 5 / 2 + 1e-12
+    gap = angle_gap(fine[:, 2], pose[:, 2], 2 * math.pi)
+    assert (gap <= angle_gap(coarse[:, 2], pose[:, 2], 2 * math.pi) + 1e-12).all()
+    assert gap.max() <= math.pi / 4 / 9 / 2 + 1e-9
+
+
+def test_the_refined_action_s_pose_is_where_the_env_puts_the_piece():
+    n = 6
+    env = TangramEnv(
+        EnvConfig(num_worlds=n, grid=FINE, task=TaskConfig(cache=CacheConfig(size=64))), seed=0
+    )
+    env.reset()
+    assert env.action_spec.shape == (n, 4)
+    a = _random_actions(FINE, n, seed=3)
+    a[:, :2] = np.clip(a[:, :2], 15, 35)  # inside the table, clear of the view's edge
+    env.step(TensorDict(action=torch.as_tensor(a), batch_size=[n]))
+    want = env.piece_set.to_centroid(np.zeros(n, dtype=np.int64), FINE.to_pose(a))
+    q = env.worlds.qpos[:, 0:7]
+    # The first piece on an empty table is set down without physics, exactly where commanded.
+    assert np.allclose(q[:, :2], want[:, :2], atol=1e-9)
+    yaw = 2 * np.arctan2(q[:, 6], q[:, 3])
+    assert np.allclose(angle_gap(yaw, want[:, 2], 2 * math.pi), 0, atol=1e-9)
+    with pytest.raises(ValueError, match=r"shape \(6, 4\) \(x, y, θ, fine\)"):
+        env.step(TensorDict(action=torch.zeros(n, 3, dtype=torch.long), batch_size=[n]))
+    with pytest.raises(ValueError, match="component fine = 225"):
+        env.step(TensorDict(action=torch.as_tensor(np.c_[a[:, :3], np.full(n, 225)]), batch_size=[n]))
+    env.close()
+
+
+@pytest.mark.parametrize(
+    "kw, msg",
+    [
+        ({"fine_xy": 4}, "env.grid.fine_xy must be odd"),
+        ({"fine_theta": 0}, "env.grid.fine_theta must be odd and >= 1"),
+        ({"fine_xy": 3, "nx": 1}, "needs at least 2 cells"),
+    ],
+)
+def test_bad_refinements_give_a_one_line_error(kw, msg):
+    with pytest.raises(ValueError, match=msg) as e:
+        ActionGrid(**kw)
+    assert "\n" not in str(e.value)
+
+
+def test_no_policy_is_built_for_a_refined_grid_yet():
+    with pytest.raises(ValueError, match="no policy acts on a refined grid yet"):
+        build_actor_critic(PolicyConfig(), FINE, View())
