@@ -89,6 +89,83 @@ def test_bad_refinements_give_a_one_line_error(kw, msg):
     assert "\n" not in str(e.value)
 
 
-def test_no_policy_is_built_for_a_refined_grid_yet():
-    with pytest.raises(ValueError, match="no policy acts on a refined grid yet"):
-        build_actor_critic(PolicyConfig(), FINE, View())
+def _refined_policy(window: int = 1):
+    torch.manual_seed(0)
+    env = TangramEnv(EnvConfig(num_worlds=3, grid=FINE, task=TaskConfig(cache=CacheConfig(size=64))), seed=0)
+    ac = build_actor_critic(PolicyConfig(mode_window=window), FINE, env.view, env.action_spec)
+    # Non-zero fine weights, so that the offsets' scores differ from cell to cell.
+    fine = next(m for m in ac.modules() if type(m).__name__ == "FineHead")
+    torch.nn.init.normal_(fine.conv.weight, std=0.5)
+    return env, ac
+
+
+def test_the_refined_policy_samples_four_indices_the_env_takes_and_scores_them_jointly():
+    env, ac = _refined_policy(window=3)
+    policy = ac.get_policy_operator()
+    td = env.reset()
+    out = policy(td.clone())
+    a = out["action"]
+    assert a.shape == (3, 4) and (a >= 0).all() and (a < torch.tensor(FINE.nvec)).all()
+    env.step(out)  # the env accepts the policy's refined actions
+    dist = policy.get_dist(td.clone())
+    # The joint log-probability is the coarse one plus the two offsets' at that cell.
+    xy, t = dist.fine_logits(a[:, :3])
+    want = (
+        torch.log_softmax(dist.scores, -1).gather(-1, (a[:, 2] * 51 * 51 + a[:, 1] * 51 + a[:, 0])[:, None])[:, 0]
+        + torch.log_softmax(xy, -1).gather(-1, (a[:, 3] % 25)[:, None])[:, 0]
+        + torch.log_softmax(t, -1).gather(-1, (a[:, 3] // 25)[:, None])[:, 0]
+    )
+    assert torch.allclose(dist.log_prob(a), want, atol=1e-5)
+    assert torch.allclose(out["action_log_prob"], want, atol=1e-4)
+    # The mode and the planner's candidates carry each coarse action's most probable offset.
+    mode = dist.mode
+    xy, t = dist.fine_logits(mode[:, :3])
+    assert (mode[:, 3] == xy.argmax(-1) + 25 * t.argmax(-1)).all()
+    top = dist.top_actions(4)
+    assert top.shape == (3, 4, 4) and (top[:, 0] == mode).all()
+    # A sample over a batch of offsets: every offset of a cell reachable, their probabilities sum to 1.
+    total = sum(
+        dist.log_prob(torch.cat([mode[:, :3], torch.full((3, 1), f)], 1)).exp() for f in range(FINE.nfine)
+    )
+    coarse_p = torch.softmax(dist.scores, -1).gather(-1, (mode[:, 2] * 2601 + mode[:, 1] * 51 + mode[:, 0])[:, None])[:, 0]
+    assert torch.allclose(total, coarse_p, rtol=1e-4)
+    env.close()
+
+
+def test_the_fine_head_learns_from_the_joint_log_probability_and_the_entropy_counts_it():
+    env, ac = _refined_policy()
+    policy = ac.get_policy_operator()
+    td = env.reset()
+    dist = policy.get_dist(td.clone())
+    a = dist.sample()
+    lp = dist.log_prob(a)
+    ent = dist.entropy()
+    coarse_only = super(type(dist), dist).entropy()
+    assert (ent > coarse_only).all()  # the offsets add their own uncertainty
+    (lp.sum() + ent.sum()).backward()
+    fine = next(m for m in ac.modules() if type(m).__name__ == "FineHead")
+    assert fine.conv.weight.grad is not None and fine.conv.weight.grad.abs().sum() > 0
+    env.close()
+
+
+def test_a_refined_grid_needs_the_spatial_policy_in_the_set_s_order():
+    with pytest.raises(ValueError, match="needs the spatial policy in the set's order"):
+        build_actor_critic(PolicyConfig(name="paper"), FINE, View())
+    with pytest.raises(ValueError, match="in free order"):
+        build_actor_critic(PolicyConfig(), FINE, View(), pieces=7)
+
+
+@pytest.mark.parametrize(
+    "over",
+    [
+        {"algo": "bc", "bc": {"targets": "dense"}},
+        {"algo": "bc", "bc": {"targets": "oracle"}, "exit": {"rounds": 1}},
+        {"algo": "rerank"},
+    ],
+)
+def test_what_covers_only_the_coarse_grid_refuses_a_refined_one_at_load(over):
+    from mrchaos.learn.config import ConfigError, config_from_dict
+
+    with pytest.raises(ConfigError, match="cover the coarse grid only"):
+        config_from_dict({"env": {"grid": {"fine_xy": 3}}, **over}, "test")
+    config_from_dict({"env": {"grid": {"fine_xy": 3}}, "algo": "bc", "bc": {"targets": "oracle"}}, "test")

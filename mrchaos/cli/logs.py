@@ -8,6 +8,7 @@ every run. Here libraries log at WARNING and above unless the user asks for more
 from __future__ import annotations
 
 import logging
+import os
 
 __all__ = ["configure_logging", "NOISY"]
 
@@ -23,6 +24,10 @@ def configure_logging(verbose: bool = False, progress: bool = True) -> None:
         logging.basicConfig(format="%(asctime)s %(name)s %(levelname)s %(message)s")
     root.setLevel(logging.INFO if verbose else logging.WARNING)
     logging.getLogger("mrchaos").setLevel(logging.INFO if verbose or progress else logging.WARNING)
+    level = logging.INFO if verbose else logging.WARNING
+    # torchrl sets its logger's and its handler's level from this variable when first imported,
+    # which a command does after this call: set here, it holds for that import too.
+    os.environ.setdefault("RL_LOGGING_LEVEL", logging.getLevelName(level))
     for name in NOISY:
         # torchrl's own handler would print its INFO lines whatever the root's level is.
-        logging.getLogger(name).setLevel(logging.INFO if verbose else logging.WARNING)
+        logging.getLogger(name).setLevel(level)

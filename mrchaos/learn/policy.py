@@ -14,6 +14,10 @@ With free order (``env.order: free``, ``build_actor_critic(..., pieces=P)``) bot
 pieces left (``remaining``, into the MLP or the FiLM context) and the action mask: the paper
 net gets a piece head, the spatial net one set of orientation channels per piece, and the pieces
 the mask forbids get :data:`MASKED_LOGIT`; actions are (piece, x, y, theta).
+
+On a refined grid (``env.grid.fine_xy``, ``fine_theta``) the spatial net also scores the offset
+inside the coarse cell it chose, from the features at that cell (:class:`CoarseFineCategorical`):
+actions are (x, y, theta, fine).
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torch.distributions import Categorical, Distribution, constraints
 from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperator
@@ -36,6 +40,7 @@ __all__ = [
     "FactorisedCategorical",
     "GridCategorical",
     "PieceGridCategorical",
+    "CoarseFineCategorical",
     "MASKED_LOGIT",
     "mask_pieces",
     "build_actor_critic",
@@ -342,6 +347,115 @@ class PieceGridCategorical(GridCategorical):
         return super().scores_at(self._grid(actions))
 
 
+class CoarseFineCategorical(GridCategorical):
+    """A :class:`GridCategorical` over the coarse grid, then the offset inside the chosen cell:
+    actions are (..., 4) = (x, y, theta, fine), ``fine = fxy + fine_xy**2 * ft`` as
+    :meth:`mrchaos.env.actions.ActionGrid.fine_offsets` reads it.
+
+    Given the coarse action, the position offset ``fxy`` (``fine_xy**2`` choices) and the angle
+    offset ``ft`` (``fine_theta`` choices, scored per orientation) are independent categoricals
+    whose logits are the ``fine`` feature map (..., fine_xy**2 + T * fine_theta, n, n) read
+    bilinearly at the coarse action's grid position (``wx`` (X, n), ``wy`` (Y, n)). Only the chosen
+    cell's offsets are ever scored, so a refined action costs ``fine_xy**2 + T * fine_theta``
+    outputs more, not a grid that many times larger.
+
+    :meth:`log_prob` is the joint's; :meth:`entropy` adds the fine part's entropy at the actions
+    :meth:`log_prob` last scored (the PPO loss asks in that order), else at the mode. The planner's
+    candidates (:meth:`top_actions`) are the coarse ones, each with its most probable offset.
+    """
+
+    def __init__(
+        self,
+        logits: torch.Tensor,
+        fine: torch.Tensor,
+        wx: torch.Tensor,
+        wy: torch.Tensor,
+        fine_xy: int,
+        fine_theta: int,
+        window: int = 1,
+    ) -> None:
+        super().__init__(logits, window)
+        self.fine = fine.float()
+        self.wx, self.wy = wx.to(self.fine.device), wy.to(self.fine.device)
+        self.nxy, self.fine_theta = fine_xy * fine_xy, fine_theta
+        self._fine_entropy: torch.Tensor | None = None
+        self._event_shape = torch.Size([4])
+
+    def fine_logits(self, coarse: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Unnormalised logits (..., fine_xy**2) of the position offset and (..., fine_theta) of the
+        angle offset at coarse actions (..., 3); leading dims beyond the batch's go first."""
+        coarse = coarse.long()
+        rx, ry = self.wx[coarse[..., 0]], self.wy[coarse[..., 1]]  # (..., n)
+        vals = torch.einsum("...a,...cab,...b->...c", ry, self.fine, rx)
+        xy, t = vals[..., : self.nxy], vals[..., self.nxy :]
+        t = t.reshape(*t.shape[:-1], -1, self.fine_theta)  # (..., T, fine_theta)
+        idx = coarse[..., 2, None, None].expand(*t.shape[:-2], 1, self.fine_theta)
+        return xy, t.gather(-2, idx).squeeze(-2)
+
+    def _fine_parts(self, coarse: torch.Tensor) -> tuple[Categorical, Categorical]:
+        xy, t = self.fine_logits(coarse)
+        return Categorical(logits=xy), Categorical(logits=t)
+
+    def sample(self, sample_shape: torch.Size | list[int] | tuple[int, ...] = torch.Size()) -> torch.Tensor:
+        coarse = super().sample(sample_shape)
+        with torch.no_grad():
+            pxy, pt = self._fine_parts(coarse)
+            fine = pxy.sample() + self.nxy * pt.sample()
+        return torch.cat([coarse, fine[..., None]], -1)
+
+    def log_prob(self, value: torch.Tensor) -> torch.Tensor:
+        value = value.long()
+        lp = super().log_prob(value[..., :3])
+        pxy, pt = self._fine_parts(value[..., :3])
+        fine = value[..., 3]
+        if torch.is_grad_enabled():
+            self._fine_entropy = pxy.entropy() + pt.entropy()
+        return lp + pxy.log_prob(fine % self.nxy) + pt.log_prob(fine // self.nxy)
+
+    def entropy(self) -> torch.Tensor:
+        fine = self._fine_entropy if self._fine_entropy is not None and torch.is_grad_enabled() else None
+        if fine is None:
+            pxy, pt = self._fine_parts(super().mode)
+            fine = pxy.entropy() + pt.entropy()
+        return super().entropy() + fine
+
+    def with_fine_mode(self, coarse: torch.Tensor) -> torch.Tensor:
+        """Coarse actions (..., 3) completed by each one's most probable offset: (..., 4)."""
+        xy, t = self.fine_logits(coarse)
+        fine = xy.argmax(-1) + self.nxy * t.argmax(-1)
+        return torch.cat([coarse, fine[..., None]], -1)
+
+    def scores_at(self, actions: torch.Tensor) -> torch.Tensor:
+        return super().scores_at(actions[..., :3])
+
+    def top_actions(self, k: int) -> torch.Tensor:
+        coarse = super().top_actions(k)  # (..., k, 3)
+        # fine_logits takes extra leading dims first: put the candidates' dim in front and back.
+        return self.with_fine_mode(coarse.movedim(-2, 0)).movedim(0, -2)
+
+    @property
+    def mode(self) -> torch.Tensor:
+        return self.with_fine_mode(super().mode)
+
+
+class FineHead(nn.Module):
+    """The refined grid's fine feature map: per trunk cell, logits of the ``fine_xy**2`` position
+    offsets and of the ``fine_theta`` angle offsets of every orientation, read by
+    :class:`CoarseFineCategorical` at the coarse action's cell. Zero-initialised: a policy starts
+    at the coarse pose's neighbourhood uniformly and learns where inside the cell to go."""
+
+    def __init__(self, channels: int, grid: ActionGrid) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(channels, grid.fine_xy**2 + grid.norient * grid.fine_theta, 1)
+        nn.init.zeros_(self.conv.weight)
+        nn.init.zeros_(self.conv.bias)  # type: ignore[arg-type]  # Conv2d has a bias unless told otherwise
+
+    def forward(self, f: torch.Tensor) -> torch.Tensor:
+        lead = f.shape[:-3]
+        out = self.conv(f.reshape(-1, *f.shape[-3:]))
+        return out.reshape(*lead, *out.shape[1:])
+
+
 def _prep(obs: torch.Tensor, pool: int) -> torch.Tensor:
     # Straight to the autocast dtype (bf16 holds 0 and 255 exactly): no fp32 copy of the batch.
     kind = obs.device.type
@@ -540,7 +654,7 @@ class _Value(nn.Module):
         return self.v(h).float()
 
 
-_NETWORKS = (PaperTrunk, PaperHeads, SpatialTrunk, SpatialHead)
+_NETWORKS = (PaperTrunk, PaperHeads, SpatialTrunk, SpatialHead, FineHead)
 
 
 def build_actor_critic(
@@ -553,11 +667,10 @@ def build_actor_critic(
     a set of that many pieces (``env.order: free``): it also reads ``remaining`` and
     ``action_mask``, and its actions are (piece, x, y, theta).
     """
-    if grid.refined:
-        # The env, the oracle and the random baseline take the fine index; no head produces it yet.
+    if grid.refined and (cfg.name != "spatial" or pieces):
         raise ValueError(
-            "env.grid.fine_xy and env.grid.fine_theta refine the grid for the oracle and the random "
-            "baseline only (mrchaos-bench --grid fine_xy=5); no policy acts on a refined grid yet"
+            "a refined grid (env.grid.fine_xy, fine_theta) needs the spatial policy in the set's order "
+            f"(policy.name: spatial, env.order: fixed), got {cfg.name!r}" + (" in free order" if pieces else "")
         )
     size = view.size
     obs_keys = ["observation", "remaining"] if pieces else ["observation"]
@@ -586,12 +699,28 @@ def build_actor_critic(
             out_keys=["logits"],
         )
         kwargs: dict = {"window": cfg.mode_window} | ({"pieces": pieces} if pieces else {})
+        dist_class: type[GridCategorical] = PieceGridCategorical if pieces else GridCategorical
+        logit_keys = ["logits"]
+        if grid.refined:
+            fine = TensorDictModule(FineHead(trunk.out_channels, grid), in_keys=["features"], out_keys=["fine"])
+            head = TensorDictSequential(head, fine)  # type: ignore[assignment]
+            logit_keys.append("fine")
+            dist_class = CoarseFineCategorical
+            # Where the coarse grid's positions fall on the trunk's cells (the fine map's lattice).
+            gx = torch.as_tensor(grid.xs, dtype=torch.float64) / (view.extent / 2)
+            gy = -torch.as_tensor(grid.ys, dtype=torch.float64) / (view.extent / 2)
+            kwargs |= {
+                "wx": bilinear_matrix(gx, trunk.cells),
+                "wy": bilinear_matrix(gy, trunk.cells),
+                "fine_xy": grid.fine_xy,
+                "fine_theta": grid.fine_theta,
+            }
         actor = ProbabilisticActor(
             head,
-            in_keys=["logits"],
+            in_keys=logit_keys,
             out_keys=["action"],
             spec=action_spec,
-            distribution_class=PieceGridCategorical if pieces else GridCategorical,
+            distribution_class=dist_class,
             distribution_kwargs=kwargs,
             return_log_prob=True,
         )
