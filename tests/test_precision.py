@@ -158,8 +158,7 @@ def test_a_refined_grid_needs_the_spatial_policy_in_the_set_s_order():
 @pytest.mark.parametrize(
     "over",
     [
-        {"algo": "bc", "bc": {"targets": "dense"}},
-        {"algo": "bc", "bc": {"targets": "oracle"}, "exit": {"rounds": 1}},
+        {"algo": "bc", "bc": {"targets": "dense"}, "exit": {"rounds": 1}},
         {"algo": "rerank"},
     ],
 )
@@ -168,4 +167,31 @@ def test_what_covers_only_the_coarse_grid_refuses_a_refined_one_at_load(over):
 
     with pytest.raises(ConfigError, match="cover the coarse grid only"):
         config_from_dict({"env": {"grid": {"fine_xy": 3}}, **over}, "test")
-    config_from_dict({"env": {"grid": {"fine_xy": 3}}, "algo": "bc", "bc": {"targets": "oracle"}}, "test")
+    for targets in ("oracle", "dense"):
+        config_from_dict({"env": {"grid": {"fine_xy": 3}}, "algo": "bc", "bc": {"targets": targets}}, "test")
+
+
+def test_dense_demonstrations_on_a_refined_grid_carry_the_oracle_s_offset_and_the_fine_head_fits_it():
+    from mrchaos.env.oracle import oracle_actions
+    from mrchaos.learn.bc import demonstrations
+    from mrchaos.tasks.chaos import ChaosConfig, generate
+
+    env, ac = _refined_policy()
+    targets, _, _ = generate(env.piece_set, 3, np.random.default_rng(4), ChaosConfig(angle_step=0.0), env.view)
+    data = demonstrations(env, targets, dense=True)
+    assert data["label"].shape == (21, 8, 51, 51) and data["fine_label"].shape == (21, 4)
+    # States go step by step: the first three are the empty tables, labelled with the oracle's action.
+    env.reset_to(targets)
+    assert (data["fine_label"][:3] == oracle_actions(env)).all()
+    policy = ac.get_policy_operator()
+    opt = torch.optim.Adam(ac.parameters(), lr=3e-3)
+    obs = TensorDict(observation=data["observation"], batch_size=[21])
+    losses = []
+    for _ in range(40):
+        nll = -policy.get_dist(obs.clone()).fine_log_prob(data["fine_label"]).mean()
+        opt.zero_grad()
+        nll.backward()
+        opt.step()
+        losses.append(nll.item())
+    assert losses[-1] < 0.5 * losses[0], losses[::10]
+    env.close()

@@ -45,8 +45,6 @@ class CounterfactualGrid:
     """
 
     def __init__(self, piece_set: PieceSet, grid: ActionGrid, subdiv: int = 2) -> None:
-        if grid.refined:
-            raise ValueError("counterfactual coverage covers the coarse grid only: env.grid.fine_xy and fine_theta must be 1")
         if grid.nx != grid.ny or grid.nx < 2:
             raise ValueError(f"counterfactual coverage needs equal x and y steps (nx = ny >= 2), got {grid.nvec}")
         self.piece_set, self.grid, self.subdiv = piece_set, grid, subdiv

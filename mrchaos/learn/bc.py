@@ -164,7 +164,9 @@ def demonstrations(
 
     The assemblies are the oracle's, or ``actor``'s (DAgger: the states a policy reaches);
     the labels are the oracle's grid actions (M*P, 3), or with ``dense`` the counterfactual
-    coverage of every grid action (M*P, T, Y, X) uint8 (see :func:`_dense_label`). With free
+    coverage of every grid action (M*P, T, Y, X) uint8 (see :func:`_dense_label`), and on a refined
+    grid the oracle's refined action too (``fine_label`` (M*P, 4): its offset is learnt at its
+    cell). With free
     order (dense only) the label is :func:`free_label`'s (``temperature`` is its target's), the
     oracle places its pieces in an order drawn with ``generator``, and the states also hold
     ``remaining`` and ``choosable`` (M*P, P) bool.
@@ -190,6 +192,9 @@ def demonstrations(
                 return oracle_actions(e, random_pieces(e, order))
         else:
             add("label", _dense_label(e, overlap_limit) if dense else oracle_actions(e))
+            if dense and e.grid.refined:
+                # Dense targets grade the coarse grid; the offset is learnt at the oracle's own cell.
+                add("fine_label", oracle_actions(e))
         return oracle_actions(e) if actor is None else actor(e, td)
 
     evaluate(env, targets, act, mirrored=mirrored)
@@ -418,8 +423,11 @@ class SupervisedRun:
                 "remaining": torch.zeros(0, p, dtype=torch.bool),
                 "choosable": torch.zeros(0, p, dtype=torch.bool),
             }
-        shape, dtype = ((0, g.norient, g.ny, g.nx), torch.uint8) if self.dense else ((0, 3), torch.int64)
-        return {"observation": obs, "label": torch.zeros(shape, dtype=dtype)}
+        shape, dtype = ((0, g.norient, g.ny, g.nx), torch.uint8) if self.dense else ((0, len(g.nvec)), torch.int64)
+        out = {"observation": obs, "label": torch.zeros(shape, dtype=dtype)}
+        if self.dense and g.refined:
+            out["fine_label"] = torch.zeros(0, len(g.nvec), dtype=torch.int64)
+        return out
 
     def _shard(
         self, states: dict[str, torch.Tensor], candidates: torch.Tensor | None = None, iou: torch.Tensor | None = None
@@ -546,6 +554,8 @@ class SupervisedRun:
                         ).mean()
                     else:
                         sup = supervised_loss(dist, label, self.dense, bc.temperature).mean()
+                    if "fine_label" in data:
+                        sup = sup - dist.fine_log_prob(data["fine_label"][idx].to(self.device)).mean()
                 has = ~iou[:, 0].isnan()
                 rank = torch.zeros((), device=self.device)
                 if has.any():

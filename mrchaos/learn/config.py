@@ -363,15 +363,11 @@ class TrainConfig:
             raise ValueError(
                 "optim.lr_final anneals over the run's budget: set collector.total_frames or collector.max_minutes"
             )
-        if self.env.grid.refined and (
-            (self.algo == "bc" and self.bc.targets == "dense") or self.exit.rounds or self.algo == "rerank"
-        ):
-            # The counterfactual coverage, the planner's candidates and the re-ranker's footprints
-            # are computed on the coarse grid; the fine index is learnt from the oracle's action or
-            # from the reward.
+        if self.env.grid.refined and (self.exit.rounds or self.algo == "rerank"):
+            # The planner's candidates and the re-ranker's footprints are the coarse grid's.
             raise ValueError(
-                "a refined grid (env.grid.fine_xy, fine_theta) trains with PPO or with oracle targets "
-                "(bc.targets: oracle); dense targets, expert iteration and the re-ranker cover the coarse grid only"
+                "a refined grid (env.grid.fine_xy, fine_theta) trains with PPO or supervision; expert "
+                "iteration and the re-ranker cover the coarse grid only"
             )
         if self.exit.rounds and self.algo != "bc":
             raise ValueError("exit.rounds are rounds of supervision: set algo: bc")

@@ -403,14 +403,17 @@ class CoarseFineCategorical(GridCategorical):
             fine = pxy.sample() + self.nxy * pt.sample()
         return torch.cat([coarse, fine[..., None]], -1)
 
-    def log_prob(self, value: torch.Tensor) -> torch.Tensor:
+    def fine_log_prob(self, value: torch.Tensor) -> torch.Tensor:
+        """Log-probability of the offsets of actions (..., 4) given their coarse cells."""
         value = value.long()
-        lp = super().log_prob(value[..., :3])
         pxy, pt = self._fine_parts(value[..., :3])
         fine = value[..., 3]
         if torch.is_grad_enabled():
             self._fine_entropy = pxy.entropy() + pt.entropy()
-        return lp + pxy.log_prob(fine % self.nxy) + pt.log_prob(fine // self.nxy)
+        return pxy.log_prob(fine % self.nxy) + pt.log_prob(fine // self.nxy)
+
+    def log_prob(self, value: torch.Tensor) -> torch.Tensor:
+        return super().log_prob(value[..., :3].long()) + self.fine_log_prob(value)
 
     def entropy(self) -> torch.Tensor:
         fine = self._fine_entropy if self._fine_entropy is not None and torch.is_grad_enabled() else None
