@@ -54,9 +54,7 @@ def test_nearest_inverts_to_pose_and_is_never_farther_than_the_coarse_grid():
 
 def test_the_refined_action_s_pose_is_where_the_env_puts_the_piece():
     n = 6
-    env = TangramEnv(
-        EnvConfig(num_worlds=n, grid=FINE, task=TaskConfig(cache=CacheConfig(size=64))), seed=0
-    )
+    env = TangramEnv(EnvConfig(num_worlds=n, grid=FINE, task=TaskConfig(cache=CacheConfig(size=64))), seed=0)
     env.reset()
     assert env.action_spec.shape == (n, 4)
     a = _random_actions(FINE, n, seed=3)
@@ -124,10 +122,10 @@ def test_the_refined_policy_samples_four_indices_the_env_takes_and_scores_them_j
     top = dist.top_actions(4)
     assert top.shape == (3, 4, 4) and (top[:, 0] == mode).all()
     # A sample over a batch of offsets: every offset of a cell reachable, their probabilities sum to 1.
-    total = sum(
-        dist.log_prob(torch.cat([mode[:, :3], torch.full((3, 1), f)], 1)).exp() for f in range(FINE.nfine)
-    )
-    coarse_p = torch.softmax(dist.scores, -1).gather(-1, (mode[:, 2] * 2601 + mode[:, 1] * 51 + mode[:, 0])[:, None])[:, 0]
+    total = sum(dist.log_prob(torch.cat([mode[:, :3], torch.full((3, 1), f)], 1)).exp() for f in range(FINE.nfine))
+    coarse_p = torch.softmax(dist.scores, -1).gather(-1, (mode[:, 2] * 2601 + mode[:, 1] * 51 + mode[:, 0])[:, None])[
+        :, 0
+    ]
     assert torch.allclose(total, coarse_p, rtol=1e-4)
     env.close()
 

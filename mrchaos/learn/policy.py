@@ -706,7 +706,7 @@ def build_actor_critic(
         logit_keys = ["logits"]
         if grid.refined:
             fine = TensorDictModule(FineHead(trunk.out_channels, grid), in_keys=["features"], out_keys=["fine"])
-            head = TensorDictSequential(head, fine)  # type: ignore[assignment]
+            head = TensorDictSequential(head, fine)
             logit_keys.append("fine")
             dist_class = CoarseFineCategorical
             # Where the coarse grid's positions fall on the trunk's cells (the fine map's lattice).
