@@ -216,3 +216,41 @@ def test_the_shipped_recipes_resolve_from_scratch(name):
     for s in rec.stages[1:]:
         assert s.continues or s.config.init_from in folders
         assert all(d in folders for d in s.config.rerank.data)
+
+
+def test_a_real_run_killed_in_its_second_stage_resumes_its_epochs_and_keeps_the_first(tmp_path, monkeypatch):
+    """The same with the real trainer: stage two is killed after its first epoch; the resumed run
+    trains only stage two's remaining epoch, from the checkpoint the kill left."""
+    from mrchaos.learn import bc
+
+    tiny = {k: yaml.safe_load(v) for k, v in (o.split("=", 1) for o in TINY_NET)}
+    small = {"bc.objects": 6, "bc.dagger_rounds": 0, "env.num_worlds": 6, **tiny}
+    stages = [
+        {"name": "first", "config": str(ROOT / "conf" / "dense.yaml"), "overrides": {**small, "bc.epochs": 1}},
+        {"name": "second", "config": str(ROOT / "conf" / "dense.yaml"), "overrides": {**small, "bc.epochs": 2}},
+    ]
+    path = _recipe(tmp_path, stages, name="killed")
+    fit = bc.SupervisedRun._fit_epoch
+    fitted: list[str] = []
+
+    def fit_then_maybe_die(self, *args, **kwargs):
+        fitted.append(self.cfg.name)
+        if fitted.count("second") == 2 and kill:
+            raise _Killed  # mid-stage, after its first epoch's checkpoint
+        return fit(self, *args, **kwargs)
+
+    kill = True
+    monkeypatch.setattr(bc.SupervisedRun, "_fit_epoch", fit_then_maybe_die)
+    with pytest.raises(_Killed):
+        train_main([str(path), "--eval=0"])
+    run = tmp_path / "runs" / "killed"
+    assert fitted == ["first", "second", "second"]
+    assert (run / "first" / "stage.json").exists() and not (run / "second" / "stage.json").exists()
+    first_done = (run / "first" / "stage.json").stat().st_mtime_ns
+    kill = False
+    fitted.clear()
+    assert train_main(["--resume", str(run), "--eval=0"]) == 0
+    assert fitted == ["second"]  # its second epoch only; the first stage is not run again
+    assert (run / "first" / "stage.json").stat().st_mtime_ns == first_done
+    rows = (run / "second" / "metrics.csv").read_text().strip().splitlines()[1:]
+    assert len(rows) == 2
