@@ -361,8 +361,12 @@ def test_a_finer_grid_gives_the_baselines_its_poses_and_leaves_a_checkpoint_its_
     assert (env.grid.nx, env.grid.ny, env.grid.ntheta, env.grid.half_range) == (101, 51, 24, 0.16)
     env.close()
     env = bench.make_env(resolve_policy("mrchaos-cutlery"))
-    assert env.grid.nvec == (51, 51, 8)
+    assert env.grid.nvec[:3] == (51, 51, 8)
     env.close()
+    res = Bench(None, ["Random"], random_objects=2, num_worlds=2, task="soda", grid={"fine_xy": 3}).run(
+        [resolve_policy("oracle")]
+    )
+    assert res["policies"]["oracle"]["label"].endswith(", grid fine_xy=3") and res["grid"] == {"fine_xy": 3}
 
 
 @pytest.mark.parametrize(

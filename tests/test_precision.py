@@ -1,6 +1,7 @@
 """Precision past the grid: the refined action (a fourth, fine index inside the coarse cell)."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -193,3 +194,33 @@ def test_dense_demonstrations_on_a_refined_grid_carry_the_oracle_s_offset_and_th
         losses.append(nll.item())
     assert losses[-1] < 0.5 * losses[0], losses[::10]
     env.close()
+
+
+def test_a_supervised_run_on_a_refined_grid_trains_the_fine_head(tmp_path):
+    """The recipe end to end: its shards keep the oracle's offsets and its epochs fit them (the
+    fine head starts at zero, so any weight away from zero was learnt)."""
+    from mrchaos.cli.train import main as train_main
+    from mrchaos.learn.checkpoint import load_checkpoint
+
+    root = Path(__file__).resolve().parents[1]
+    args = [
+        str(root / "conf" / "cutlery_dense.yaml"),
+        f"runs_dir={tmp_path}",
+        "bc.objects=4",
+        "bc.epochs=2",
+        "bc.dagger_rounds=0",
+        "env.num_worlds=4",
+        "bc.minibatch_size=4",
+        "policy.channels=[8,16,16]",
+        "policy.hidden=32",
+        "policy.context=8",
+        "precision=fp32",
+        "--eval=0",
+    ]
+    assert train_main(args) == 0
+    run = tmp_path / "cutlery_dense"
+    shard = torch.load(run / "data" / "round_0.pt", weights_only=True)
+    assert shard["fine_label"].shape == (12, 4)
+    model = load_checkpoint(run / "checkpoints" / "last.pt")["model"]
+    fine = [v for k, v in model.items() if "conv" in k and k.endswith("weight") and v.shape[0] == 9 + 8 * 3]
+    assert len(fine) == 1 and fine[0].abs().sum() > 0

@@ -408,6 +408,9 @@ class Bench:
                 label += f" + lookahead {self.lookahead}"
             if self.order == "free" and spec.kind != "checkpoint":
                 label += ", random order"
+            grid = {k: v for k, v in self.grid.items() if k != "flip"}
+            if grid and spec.kind != "checkpoint":
+                label += ", grid " + " ".join(f"{k}={v}" for k, v in grid.items())
             results["policies"][spec.name] = {"label": label, "families": per_fam}
         results["task"] = self.task
         results["piece_names"] = list(self.piece_set.names)

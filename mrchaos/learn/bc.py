@@ -307,8 +307,10 @@ class SupervisedRun:
         if ex.rounds and cfg.env.num_worlds < ex.k:
             raise ValueError(f"exit.k={ex.k} candidates need env.num_worlds >= {ex.k}, got {cfg.env.num_worlds}")
         self.free = cfg.env.order == "free"  # dense targets only (TrainConfig checks)
-        #: What a shard holds: with free order also the sparse label's parts and the policy's inputs.
-        self.keys = SHARD_KEYS + (FREE_SHARD_KEYS if self.free else ())
+        #: What a shard holds: with free order also the sparse label's parts and the policy's inputs;
+        #: on a refined grid with dense labels also the oracle's refined action (the offset's loss).
+        fine = ("fine_label",) if self.dense and cfg.env.grid.refined else ()
+        self.keys = SHARD_KEYS + (FREE_SHARD_KEYS if self.free else ()) + fine
         self.env = TangramEnv(dataclasses.replace(cfg.env_config(), task=cfg.task.given_targets()), seed=cfg.seed)
         pieces = self.env.num_pieces if self.free else 0  # free order: the policy chooses the piece too
         self.ac = build_actor_critic(cfg.policy, self.env.grid, self.env.view, self.env.action_spec, pieces)
