@@ -55,7 +55,9 @@ TABLES: dict[str, list[str]] = {
     + [a for p in ("mrchaos-rerank", "mrchaos-exit", "mrchaos-dense-ppo", "mrchaos-dense", "mrchaos-bc-chaos",
                    "mrchaos") for a in ("--policy", p)],
     # docs/benchmark.md: the other tasks, their authored goals and 200 chaos objects.
-    "cutlery": ["--task", "cutlery", "--policy", "mrchaos-cutlery", "--policy", "oracle", "--policy", "random"],
+    # The baselines on the shipped cutlery policy's refined grid (its action space).
+    "cutlery": ["--task", "cutlery", "--policy", "mrchaos-cutlery", "--policy", "oracle", "--policy", "random",
+                "--grid", "fine_xy=3", "--grid", "fine_theta=3"],
     "soda": ["--task", "soda", "--policy", "mrchaos-soda", "--policy", "oracle", "--policy", "random"],
     # docs/robot-and-flip.md: the shipped mrchaos placed by teleport and by the simulated UR5e.
     "placement_teleport": ["--families", "all", "--placement", "teleport", "--policy", "mrchaos"],

@@ -66,7 +66,10 @@ SHIPPED = {
         "mrchaos-fixed-twin.pt",
         "mrchaos-free's twin in the set's order (conf/recipes/free.yaml env.order=fixed)",
     ),
-    "mrchaos-cutlery": ("mrchaos-cutlery.pt", "MRChaos on cutlery (conf/cutlery.yaml)"),
+    "mrchaos-cutlery": (
+        "mrchaos-cutlery.pt",
+        "cutlery: dense supervision and 2 DAgger rounds on the refined grid (conf/cutlery_dense.yaml)",
+    ),
     "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),
 }
 
