@@ -27,6 +27,7 @@ from mrchaos.bench.benchmark import Bench, resolve_policy
 from mrchaos.env.actions import ActionGrid
 from mrchaos.figures.formats import load_figures
 from mrchaos.learn.config import config_from_dict
+from mrchaos.tasks.presets import get_preset
 
 #: Grids measured per task ({} is the task's own): finer flat grids, and the coarse grid refined
 #: by a fourth, fine index (``fine_xy``, ``fine_theta``). Tangram's figures lie on 45° steps, so
@@ -54,12 +55,9 @@ def task_grid(task: str, settings: dict) -> ActionGrid:
 
 def ceiling(task: str, settings: dict, random_objects: int, seed: int, figure_sets=None) -> dict:
     """The oracle's results on the task's families under one grid (``Bench.run``'s dict)."""
-    bench = Bench(figure_sets, _families(task), random_objects, seed, task=task, grid=settings)
+    families = list(get_preset(task).families)
+    bench = Bench(figure_sets, families, random_objects, seed, task=task, grid=settings)
     return bench.run([resolve_policy("oracle")])["policies"]["oracle"]["families"]
-
-
-def _families(task: str) -> list[str]:
-    return ["Random", "H-Normal", "H-Hard", "H-Fiendish"] if task == "tangram" else ["Authored", "Random"]
 
 
 def main() -> None:

@@ -224,12 +224,10 @@ class Bench:
         self.piece_set = get_piece_set(self.preset.piece_set)
         if perturb_after is not None and not 0 <= perturb_after < len(self.piece_set):
             raise BenchError(f"--perturb must be a step in [0, {len(self.piece_set) - 1}], got {perturb_after}")
-        #: the baselines' action-grid keys laid over the task's (the flip added by ``flip``).
+        #: the baselines' action-grid keys laid over the task's (``flip`` adds the flip).
         self.grid = dict(grid or {})
         if "flip" in self.grid:
             raise BenchError("the bench's grid settings take no flip key: the flip is its own switch (--flip)")
-        if flip:
-            self.grid["flip"] = True
         # Checked here, so that a bad key fails before any policy is evaluated.
         config_from_dict({"env": {"grid": self.grid}, "task": {"preset": task}}, "the bench's --grid settings")
         self.env_config = config_from_dict({"task": {"preset": task}}, f"task {task}").env_config()
@@ -317,7 +315,7 @@ class Bench:
                 raise BenchError(f"{spec.path}: trained with fixed order, it does not choose pieces (--order free)")
         else:
             env["order"] = self.order
-            env["grid"] = dict(self.grid)
+            env["grid"] = {**self.grid, "flip": True} if self.flip else dict(self.grid)
         cfg = config_from_dict({"env": env, "task": {"preset": self.task}}, f"bench env ({spec.name})").env_config()
         return TangramEnv(dataclasses.replace(cfg, task=cfg.task.given_targets()), seed=self.seed)
 
@@ -408,16 +406,15 @@ class Bench:
                 label += f" + lookahead {self.lookahead}"
             if self.order == "free" and spec.kind != "checkpoint":
                 label += ", random order"
-            grid = {k: v for k, v in self.grid.items() if k != "flip"}
-            if grid and spec.kind != "checkpoint":
-                label += ", grid " + " ".join(f"{k}={v}" for k, v in grid.items())
+            if self.grid and spec.kind != "checkpoint":
+                label += ", grid " + " ".join(f"{k}={v}" for k, v in self.grid.items())
             results["policies"][spec.name] = {"label": label, "families": per_fam}
         results["task"] = self.task
         results["piece_names"] = list(self.piece_set.names)
         results["placement"] = self.placement
         results["flip"] = self.flip
-        if set(self.grid) - {"flip"}:
-            results["grid"] = {k: v for k, v in self.grid.items() if k != "flip"}
+        if self.grid:
+            results["grid"] = dict(self.grid)
         results["random_mirror"] = self.random_mirror
         results["lookahead"] = self.lookahead
         results["mode_window"] = self.mode_window

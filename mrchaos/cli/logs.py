@@ -19,12 +19,12 @@ NOISY = ("torchrl", "OpenGL", "OpenGL_accelerate", "matplotlib", "PIL", "urllib3
 def configure_logging(verbose: bool = False, progress: bool = True) -> None:
     """Set up the command's logging. ``progress``: mrchaos's own INFO lines (a training run's
     rounds and stages) are shown; ``verbose``: every library's INFO lines too."""
+    level = logging.INFO if verbose else logging.WARNING
     root = logging.getLogger()
     if not root.handlers:  # a host's own handlers (pytest's, an embedding program's) are kept
         logging.basicConfig(format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    root.setLevel(logging.INFO if verbose else logging.WARNING)
+    root.setLevel(level)
     logging.getLogger("mrchaos").setLevel(logging.INFO if verbose or progress else logging.WARNING)
-    level = logging.INFO if verbose else logging.WARNING
     # torchrl sets its logger's and its handler's level from this variable when first imported,
     # which a command does after this call: set here, it holds for that import too.
     os.environ.setdefault("RL_LOGGING_LEVEL", logging.getLevelName(level))

@@ -606,6 +606,15 @@ def bilinear_matrix(coords: torch.Tensor, n: int) -> torch.Tensor:
     return m.float()
 
 
+def grid_sampling(grid: ActionGrid, view: View, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``wx`` (X, n) and ``wy`` (Y, n): the bilinear weights that read a length-``n`` lattice over
+    the image at the grid's x and y positions (:func:`bilinear_matrix`)."""
+    # Normalised image coordinates of the grid (x right, y down, [-1, 1] at the image's edges).
+    gx = torch.as_tensor(grid.xs, dtype=torch.float64) / (view.extent / 2)
+    gy = -torch.as_tensor(grid.ys, dtype=torch.float64) / (view.extent / 2)
+    return bilinear_matrix(gx, n), bilinear_matrix(gy, n)
+
+
 class SpatialHead(nn.Module):
     """Per-position logits for every angle, sampled at the action grid's image positions.
 
@@ -623,13 +632,10 @@ class SpatialHead(nn.Module):
         # upsample > 1: each trunk cell predicts an upsample x upsample block of logits (pixel shuffle).
         self.conv = nn.Conv2d(channels, grid.norient * max(pieces, 1) * upsample**2, 1)
         self.shuffle = nn.PixelShuffle(upsample) if upsample > 1 else nn.Identity()
-        # Normalised image coordinates of the grid (x right, y down, [-1, 1] at the image's edges).
-        gx = torch.as_tensor(grid.xs, dtype=torch.float64) / (view.extent / 2)
-        gy = -torch.as_tensor(grid.ys, dtype=torch.float64) / (view.extent / 2)
-        n = cells * upsample
+        wx, wy = grid_sampling(grid, view, cells * upsample)
         # Derived from the grid and the view, so not part of the weights.
-        self.register_buffer("wx", bilinear_matrix(gx, n), persistent=False)  # (X, n)
-        self.register_buffer("wy", bilinear_matrix(gy, n), persistent=False)  # (Y, n)
+        self.register_buffer("wx", wx, persistent=False)  # (X, n)
+        self.register_buffer("wy", wy, persistent=False)  # (Y, n)
 
     def forward(self, f: torch.Tensor, action_mask: torch.Tensor | None = None) -> torch.Tensor:
         lead = f.shape[:-3]
@@ -710,11 +716,10 @@ def build_actor_critic(
             logit_keys.append("fine")
             dist_class = CoarseFineCategorical
             # Where the coarse grid's positions fall on the trunk's cells (the fine map's lattice).
-            gx = torch.as_tensor(grid.xs, dtype=torch.float64) / (view.extent / 2)
-            gy = -torch.as_tensor(grid.ys, dtype=torch.float64) / (view.extent / 2)
+            wx, wy = grid_sampling(grid, view, trunk.cells)
             kwargs |= {
-                "wx": bilinear_matrix(gx, trunk.cells),
-                "wy": bilinear_matrix(gy, trunk.cells),
+                "wx": wx,
+                "wy": wy,
                 "fine_xy": grid.fine_xy,
                 "fine_theta": grid.fine_theta,
             }
