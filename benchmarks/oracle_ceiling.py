@@ -11,6 +11,7 @@ outputs a target covers.
     python benchmarks/oracle_ceiling.py                          # every task, the grids below
     python benchmarks/oracle_ceiling.py --tasks cutlery --random-objects 400
     python benchmarks/oracle_ceiling.py --figures ../shared/figures/mrchaos104.json --tasks tangram
+    python benchmarks/oracle_ceiling.py --tasks tangram --grids 0,3 --placement robot   # the UR5e places
 
 The same ceiling for one grid from the command line: ``mrchaos-bench --task cutlery --policy
 oracle --grid nx=101 --grid ntheta=24``.
@@ -53,10 +54,12 @@ def task_grid(task: str, settings: dict) -> ActionGrid:
     return cfg.grid
 
 
-def ceiling(task: str, settings: dict, random_objects: int, seed: int, figure_sets=None) -> dict:
+def ceiling(
+    task: str, settings: dict, random_objects: int, seed: int, figure_sets=None, placement: str = "teleport"
+) -> dict:
     """The oracle's results on the task's families under one grid (``Bench.run``'s dict)."""
     families = list(get_preset(task).families)
-    bench = Bench(figure_sets, families, random_objects, seed, task=task, grid=settings)
+    bench = Bench(figure_sets, families, random_objects, seed, placement=placement, task=task, grid=settings)
     return bench.run([resolve_policy("oracle")])["policies"]["oracle"]["families"]
 
 
@@ -66,7 +69,10 @@ def main() -> None:
     ap.add_argument("--random-objects", type=int, default=200)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--figures", type=Path, action="append", help="tangram figure sets (default: the built-in library)")
+    ap.add_argument("--grids", help="indices into each task's grids (comma-separated; default: all)")
+    ap.add_argument("--placement", choices=("teleport", "robot"), default="teleport")
     args = ap.parse_args()
+    pick = None if args.grids is None else [int(i) for i in args.grids.split(",")]
     sets = [load_figures(p) for p in args.figures] if args.figures else None
     print(
         "| task | grid | position step (mm) | angle step (°) | poses | outputs | family | Final | IoU | Rela "
@@ -74,10 +80,14 @@ def main() -> None:
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for task in args.tasks.split(","):
-        for settings in GRIDS[task]:
+        for i, settings in enumerate(GRIDS[task]):
+            if pick is not None and i not in pick:
+                continue
             t0 = time.perf_counter()
             grid = task_grid(task, settings)
-            fams = ceiling(task, settings, args.random_objects, args.seed, sets if task == "tangram" else None)
+            fams = ceiling(
+                task, settings, args.random_objects, args.seed, sets if task == "tangram" else None, args.placement
+            )
             name = ", ".join(f"{k}={v}" for k, v in settings.items()) or "the task's own"
             step = 2 * grid.half_range / (grid.nx - 1) / grid.fine_xy * 1000
             angle = 360 / grid.ntheta / grid.fine_theta

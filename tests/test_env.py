@@ -117,6 +117,12 @@ def test_oracle_on_mrchaos104(mrchaos104):
     targets = np.stack([f.poses for f in figs])
     rela, final = _oracle_episode(env, exact=True, targets=targets)
     assert final.mean() >= 0.99 and rela.mean() >= 0.99
+    # Every figure at Final 0.99 or more but one whose pieces overlap by about 1 mm^2 in the
+    # drawing (pose-10): the default free_tolerance (10 um) lets the drawings' micrometre seams
+    # count as touching, so no exact placement is pushed aside by contact.
+    low = final.numpy() < 0.99
+    drawn = np.array([f.overlap_area() for f in figs])
+    assert low.sum() <= 1 and (drawn[low] > 0.9e-6).all(), [f.id for f, x in zip(figs, low, strict=True) if x]
     rela_g, final_g = _oracle_episode(env, exact=False, targets=targets)
     fam = np.array([f.family for f in figs])
     for f in ("H-Normal", "H-Hard", "H-Fiendish"):

@@ -90,25 +90,25 @@ def test_the_exact_oracle_assembles_chaos_objects_in_random_orders_and_every_ord
 
 
 def test_free_order_oracles_on_mrchaos104(mrchaos104) -> None:
-    """The exact oracle in random orders assembles every figure (Final >= 0.98, mean >= 0.995); the
-    grid oracle in random orders is within 0.5 points of the fixed-order grid oracle's Rela, family by
-    family, and its Final no more than 0.5 points lower."""
+    """The exact oracle in random orders assembles every figure to Final 0.99 or more but pose-10,
+    whose pieces overlap by about 1 mm^2 in the drawing; the grid oracle in random orders is within
+    0.5 points of the fixed-order grid oracle's Rela, family by family, and its Final no more than 0.5
+    points lower."""
     figs = mrchaos104.figures
     targets = np.stack([f.poses for f in figs])
     fam = np.array([f.family for f in figs])
-    env = _env(n=len(figs))
     g = torch.Generator().manual_seed(0)
-    out, _ = _exact_in_random_orders(env, targets, g)
-    # As in the set's order (mean 0.999, two figures at 0.987): touching slots whose exact poses
-    # overlap by a sliver go through physics, which nudges a piece by a fraction of a millimetre.
+    # At a 1 um free_tolerance the drawings' few-micrometre seams send touching slots through
+    # physics, whose contact nudges a piece by a fraction of a millimetre: four figures ended under
+    # 0.99. The default, 10 um, counts them as touching.
+    strict = _env(n=len(figs), physics=PhysicsConfig(free_tolerance=1e-6))
+    out, _ = _exact_in_random_orders(strict, targets, torch.Generator().manual_seed(0))
+    assert (out["info", "final"][:, 0].numpy() < 0.99).sum() >= 2
+    env = _env(n=len(figs))
+    out, _ = _exact_in_random_orders(env, targets, torch.Generator().manual_seed(0))
     final = out["info", "final"][:, 0]
-    assert final.mean() >= 0.995 and final.min() >= 0.98, (final.mean(), final.min())
-    # Those nudges come from the drawings' few-micrometre seams: let them count as touching and
-    # every figure ends at 0.99 or more but one whose pieces overlap by about 1 mm^2 in the drawing
-    # (pose-10). The default keeps 1 um, which every fixed-order result was measured with.
-    loose = _env(n=len(figs), physics=PhysicsConfig(free_tolerance=1e-5))
-    out, _ = _exact_in_random_orders(loose, targets, torch.Generator().manual_seed(0))
-    low = out["info", "final"][:, 0].numpy() < 0.99
+    assert final.mean() >= 0.995, final.mean()
+    low = final.numpy() < 0.99
     drawn = np.array([f.overlap_area() for f in figs])
     assert low.sum() <= 1 and (drawn[low] > 0.9e-6).all(), [f.id for f, x in zip(figs, low, strict=True) if x]
     free = evaluate(env, targets, lambda e, td: oracle_actions(e, random_pieces(e, g)))
