@@ -73,6 +73,11 @@ def main() -> None:
     ap.add_argument("--placement", choices=("teleport", "robot"), default="teleport")
     args = ap.parse_args()
     pick = None if args.grids is None else [int(i) for i in args.grids.split(",")]
+    for task in args.tasks.split(","):
+        if task not in GRIDS:
+            ap.error(f"--tasks: unknown task {task!r}; tasks: {', '.join(GRIDS)}")
+        if pick is not None and max(pick) >= len(GRIDS[task]):
+            ap.error(f"--grids: {task} has grids 0 to {len(GRIDS[task]) - 1}, got {args.grids}")
     sets = [load_figures(p) for p in args.figures] if args.figures else None
     print(
         "| task | grid | position step (mm) | angle step (°) | poses | outputs | family | Final | IoU | Rela "
