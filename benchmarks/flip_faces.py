@@ -61,6 +61,8 @@ def face_choices(
     spec = resolve_policy(policy)
     env = bench.make_env(spec)
     actor = bench.actor(spec, env)
+    if exact_before and env.free_order:
+        raise SystemExit(f"flip_faces: --exact-before needs a policy in the set's order; {policy} chooses its pieces")
     chiral = env.piece_set.chiral
     first_chiral = int(np.flatnonzero(chiral)[0]) if exact_before else 0
     nw = env.batch_size[0]
@@ -83,7 +85,8 @@ def face_choices(
                 piece = placed[(ep[0] // nw * nw, s["t"])][: len(ep)]
                 sel = (piece >= 0) & chiral[np.maximum(piece, 0)]
                 want_all.append(mirrored[ep[sel], piece[sel]])
-                got_all.append(env.grid.mirrored(s["action"][sel]))
+                grid_action = s["action"][sel][:, 1:] if env.free_order else s["action"][sel]  # (piece, x, y, θ)
+                got_all.append(env.grid.mirrored(grid_action))
                 ids_all += [ids[e] for e in ep[sel]]
     env.close()
     return np.concatenate(want_all), np.concatenate(got_all), ids_all
