@@ -137,6 +137,7 @@ def test_tensorboard_run_is_read_back(tmp_path):
     assert (tmp_path / "smoke" / "csv" / "scalars" / "reward.csv").exists()
 
 
+@pytest.mark.slow  # over 20 s on 2 cores: the default run stays near 10 minutes
 def test_ray_smoke_run_passes_the_curriculum_switch_and_checkpoints(tmp_path):
     """Two Ray actors on a local 2-CPU cluster: the stage-2 switch, made in the trainer, reaches
     them (their episodes grow from one step to seven)."""

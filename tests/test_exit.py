@@ -86,6 +86,7 @@ def _exit_run(tmp_path, *extra):
     )
 
 
+@pytest.mark.slow  # over 20 s on 2 cores: the default run stays near 10 minutes
 def test_a_seconds_long_distillation_run_lowers_its_loss_and_checkpoints_every_round(tmp_path):
     assert _exit_run(tmp_path) == 0
     run = tmp_path / "exit"

@@ -318,6 +318,7 @@ def _random_flips(n: int, seed: int, flipper=None):
     return dist, angle, failed
 
 
+@pytest.mark.slow  # over 20 s on 2 cores: the default run stays near 10 minutes
 def test_robot_flips_land_turned_over_within_2mm_and_2deg():
     dist, angle, failed = [], [], []
     for seed in (0, 1):
@@ -343,6 +344,7 @@ def test_a_flip_that_flings_the_piece_is_flagged():
     assert (~np.isfinite(dist)).sum() >= 5
 
 
+@pytest.mark.slow  # over 20 s on 2 cores: the default run stays near 10 minutes
 def test_shipped_flip_policy_builds_the_mirrored_library_as_well_as_the_library(tmp_path):
     """mrchaos-flip, trained on chaos objects only, needs no --flip to evaluate mirrored figures,
     and on them loses less than 3 points of Final against the figures as drawn."""

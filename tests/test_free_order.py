@@ -354,6 +354,7 @@ def test_the_free_order_loss_is_the_dense_cross_entropy_over_every_allowed_actio
     assert (free_supervised_loss(match, *args) < free_supervised_loss(flat, *args) - 1).all()
 
 
+@pytest.mark.slow  # over 20 s on 2 cores: the default run stays near 10 minutes
 def test_a_seconds_long_free_order_dense_run_is_benched_in_free_order(tmp_path: Path, capsys) -> None:
     """conf/dense.yaml with env.order: free: random-order demonstrations, a DAgger round on the
     policy's own choices, the loss falls, and the bench plays the checkpoint in free order."""

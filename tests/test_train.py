@@ -313,6 +313,7 @@ def test_multisync_collector_smoke(tmp_path):
     assert len(rows) == 6 and {r["stage"] for r in rows} <= {"1", "2"}
 
 
+@pytest.mark.slow  # over 20 s on 2 cores: the default run stays near 10 minutes
 def test_bf16_first_minibatch_ratios_are_one(tmp_path, monkeypatch):
     """Under bf16 autocast the update recomputes the collector's log-probabilities: ratio 1 before any step."""
     from mrchaos.learn import precision
