@@ -72,8 +72,9 @@ def main() -> None:
     ap.add_argument("--grids", help="indices into each task's grids (comma-separated; default: all)")
     ap.add_argument("--placement", choices=("teleport", "robot"), default="teleport")
     args = ap.parse_args()
+    tasks = args.tasks.split(",")
     pick = None if args.grids is None else [int(i) for i in args.grids.split(",")]
-    for task in args.tasks.split(","):
+    for task in tasks:
         if task not in GRIDS:
             ap.error(f"--tasks: unknown task {task!r}; tasks: {', '.join(GRIDS)}")
         if pick is not None and max(pick) >= len(GRIDS[task]):
@@ -84,7 +85,7 @@ def main() -> None:
         "| onto a piece (%) |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for task in args.tasks.split(","):
+    for task in tasks:
         for i, settings in enumerate(GRIDS[task]):
             if pick is not None and i not in pick:
                 continue
