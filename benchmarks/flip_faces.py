@@ -2,7 +2,7 @@
 
 Final and Rela barely see a wrongly faced parallelogram (most of its slot is covered either way), so
 this counts the choice itself: greedy episodes on a figure set, and for every placement of a chiral
-piece whether the action's face (`ActionGrid.mirrored`) matches the target's.
+piece whether the face it went down on (the step's `info.mirrored`) matches the target's.
 
     python benchmarks/flip_faces.py runs/mrchaos104_mirrored.json ../shared/figures/mrchaos104.json
 
@@ -66,10 +66,10 @@ def face_choices(
     chiral = env.piece_set.chiral
     first_chiral = int(np.flatnonzero(chiral)[0]) if exact_before else 0
     nw = env.batch_size[0]
-    placed: dict[tuple[int, int], np.ndarray] = {}
+    placed: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     def on_step(start: int, t: int, nxt) -> None:
-        placed[(start, t)] = nxt["info", "piece"][:, 0].numpy().copy()
+        placed[(start, t)] = (nxt["info", "piece"][:, 0].numpy().copy(), nxt["info", "mirrored"][:, 0].numpy().copy())
 
     want_all, got_all, ids_all = [], [], []
     for groups in bench.targets.values():
@@ -82,11 +82,10 @@ def face_choices(
             assert res.steps is not None  # record_steps
             for s in res.steps:
                 ep = s["episode"]
-                piece = placed[(ep[0] // nw * nw, s["t"])][: len(ep)]
+                piece, turned = (v[: len(ep)] for v in placed[(ep[0] // nw * nw, s["t"])])
                 sel = (piece >= 0) & chiral[np.maximum(piece, 0)]
                 want_all.append(mirrored[ep[sel], piece[sel]])
-                grid_action = s["action"][sel][:, 1:] if env.free_order else s["action"][sel]  # (piece, x, y, θ)
-                got_all.append(env.grid.mirrored(grid_action))
+                got_all.append(turned[sel])
                 ids_all += [ids[e] for e in ep[sel]]
     env.close()
     return np.concatenate(want_all), np.concatenate(got_all), ids_all

@@ -137,6 +137,22 @@ def test_specs_and_random_rollout_with_flip():
         env.step(TensorDict(action=torch.tensor([[0, 0, 16]] * 4), batch_size=[4]))
 
 
+def test_the_step_info_says_which_face_the_piece_went_down_on():
+    """``info.mirrored``: turned over exactly where the action's face is the turned one and the
+    piece is chiral (a symmetric piece turned over is the same poses)."""
+    env = _env(6)
+    env.reset()
+    chiral = env.piece_set.chiral
+    for t in range(env.num_pieces):
+        a = env.action_spec.rand()
+        a[:3, 2] %= 8  # face up in three worlds, turned over in the other three
+        a[3:, 2] = a[3:, 2] % 8 + 8
+        out = env.step(TensorDict(action=a, batch_size=[6]))["next"]
+        want = FLIP.mirrored(a.numpy()) & chiral[t]
+        assert out["info", "mirrored"][:, 0].numpy().tolist() == want.tolist()
+    assert chiral.any() and not chiral.all()
+
+
 def test_chaos_mirror_prob_turns_only_chiral_pieces_and_keeps_objects_valid():
     from mrchaos.figures.figure import Figure
     from mrchaos.figures.pieces import tangram7

@@ -29,8 +29,9 @@ Randomizations:
     noise and camera jitter; the number k of pieces pre-assembled at reset.
 Success:
     the episode terminates after the last piece (or after ``horizon`` placements);
-    ``info`` carries the per-piece coverage, the whole-figure Final and IoU, and the
-    strict Rela of finished episodes.
+    ``info`` carries the per-piece coverage, the whole-figure Final and IoU, the strict Rela of
+    finished episodes, and of the step's placement: the piece, whether it went down turned over
+    (``mirrored``), whether it was set down onto a placed piece and the robot's failures.
 """
 
 from __future__ import annotations
@@ -258,6 +259,7 @@ class TangramEnv(EnvBase):
             penetration=scalar(),
             onto_piece=flag(),
             piece=Unbounded(shape=(n, 1), dtype=torch.int64),
+            mirrored=flag(),
             reward_terms=Composite({k: scalar() for k in REWARD_TERMS}, shape=bs),
             **{k: flag() for k in ROBOT_FAILURES},
             shape=bs,
@@ -468,7 +470,10 @@ class TangramEnv(EnvBase):
         penetration = np.zeros(n)
         onto = np.zeros(n, dtype=bool)
         failures = {k: np.zeros(n, dtype=bool) for k in ROBOT_FAILURES}
+        turned = np.zeros(n, dtype=bool)
         if len(rows):
+            if mirrored is not None:
+                turned[rows] = mirrored[rows]
             t0 = time.perf_counter()
             res = self._worlds.place(rows, piece[rows], poses[rows], None if mirrored is None else mirrored[rows])
             self._timings["physics"] += time.perf_counter() - t0
@@ -479,7 +484,7 @@ class TangramEnv(EnvBase):
             self.next_piece[rows] += 1
             self._last_placed[rows] = piece[rows]
         return self._observe(
-            fresh=False, placement=_Placement(piece, rows, commanded, physics, penetration, onto, failures)
+            fresh=False, placement=_Placement(piece, rows, commanded, physics, penetration, onto, failures, turned)
         )
 
     def off_table(self) -> np.ndarray:
@@ -680,6 +685,7 @@ class TangramEnv(EnvBase):
             penetration=torch.zeros(n, 1) if placement is None else col(placement.penetration),
             onto_piece=no if placement is None else col(placement.onto, torch.bool),
             piece=pieces[:, None],
+            mirrored=no if placement is None else col(placement.mirrored, torch.bool),
             reward_terms=TensorDict({k: col(v) for k, v in terms.items()}, batch_size=self.batch_size),
             **{k: no if placement is None else col(placement.failures[k], torch.bool) for k in ROBOT_FAILURES},
             batch_size=self.batch_size,
@@ -689,8 +695,9 @@ class TangramEnv(EnvBase):
 @dataclass
 class _Placement:
     """What a step's placement did, per world: the piece, which worlds acted, the commanded
-    pose, whether physics ran, penetration depth, whether it was set down onto a placed piece and
-    robot failures."""
+    pose, whether physics ran, penetration depth, whether it was set down onto a placed piece,
+    robot failures and whether the piece went down turned over (its face: the flip's outcome, so
+    that a reader of the info need not decode the action)."""
 
     piece: np.ndarray
     acted: np.ndarray
@@ -699,3 +706,4 @@ class _Placement:
     penetration: np.ndarray
     onto: np.ndarray
     failures: dict[str, np.ndarray]
+    mirrored: np.ndarray
