@@ -57,7 +57,7 @@ from mrchaos.env.metrics import (
     joint_counts,
     strict_rela_from_joint,
 )
-from mrchaos.env.observation import ObservationConfig, silhouette_image, view_image
+from mrchaos.env.observation import ObservationConfig, downsample, silhouette_image, view_image
 from mrchaos.env.rewards import REWARD_TERMS, RewardConfig, reward_terms
 from mrchaos.figures.figure import Figure
 from mrchaos.figures.pieces import get_piece_set
@@ -157,6 +157,11 @@ class EnvConfig:
             raise ValueError(f"env.placement must be 'teleport' or 'robot', got {self.placement!r}")
         if self.num_worlds < 1:
             raise ValueError(f"env.num_worlds must be >= 1, got {self.num_worlds}")
+        if self.camera == "mujoco" and self.observation.supersample > 1:
+            raise ValueError(
+                "env.observation.supersample needs env.camera: raster (MuJoCo's renderer draws "
+                "env.view.size pixels; raise env.view.size instead)"
+            )
 
 
 @dataclass
@@ -202,6 +207,8 @@ class TangramEnv(EnvBase):
         self.view = cfg.view
         self.grid = cfg.grid
         self.obs_cfg = cfg.observation
+        # The observed images' own resolution (finer than the metrics' with supersample > 1).
+        self._obs_view = View(self.view.extent, self.view.size * self.obs_cfg.supersample)
         self.free_order = cfg.order == "free"
         # One height level of the view per piece thickness (the thinnest piece's).
         self._thickness = min(p.thickness for p in self.piece_set.pieces)
@@ -344,9 +351,13 @@ class TangramEnv(EnvBase):
         self.target_source[rows] = tasks.source
         self.target_figure[rows] = tasks.figure
         ps = self.piece_set
-        ids = rasterize(ps.footprints(tasks.poses, tasks.mirrored), self.view, parts=ps.raster_parts).ids
+        polys = ps.footprints(tasks.poses, tasks.mirrored)
+        ids = rasterize(polys, self.view, parts=ps.raster_parts).ids
         self._target_ids[rows] = ids
-        self._silhouette[rows] = silhouette_image(ids)
+        fine = self.obs_cfg.supersample
+        if fine > 1:
+            ids = rasterize(polys, self._obs_view, parts=ps.raster_parts).ids
+        self._silhouette[rows] = downsample(silhouette_image(ids), fine)
         mirrored = tasks.mirrored
         assert mirrored is not None  # TargetBatch fills it
         pre = [(np.flatnonzero(k > j), tasks.poses[k > j, j], mirrored[k > j, j]) for j in range(self.num_pieces)]
@@ -568,17 +579,20 @@ class TangramEnv(EnvBase):
 
     # ------------------------------------------------------------------ outputs
     def _render(self) -> tuple[Raster, Raster]:
-        """The true view (for rewards) and the observed one (camera jitter applied)."""
+        """The true view (for rewards) and the observed one (camera jitter applied; drawn
+        ``supersample`` times finer)."""
         n = self.cfg.num_worlds
         need_height = self.obs_cfg.needs_height
         if self._camera is not None:
             raster = self._camera.render(np.arange(n))
             return raster, raster
         raster = self._worlds.raster(self.view, need_height=need_height)
+        shift = None
         if self.cfg.noise.camera_jitter > 0:
             shift = torch.randn((n, 2), generator=self.rng, dtype=torch.float64).numpy() * self.cfg.noise.camera_jitter
-            return raster, self._worlds.raster(self.view, shift=shift, need_height=need_height)
-        return raster, raster
+        if shift is None and self._obs_view == self.view:
+            return raster, raster
+        return raster, self._worlds.raster(self._obs_view, shift=shift, need_height=need_height)
 
     def _step_reward(
         self, p: _Placement, acted: torch.Tensor, coverage: torch.Tensor, slot: torch.Tensor, held: torch.Tensor
@@ -609,7 +623,7 @@ class TangramEnv(EnvBase):
         n, p = self.cfg.num_worlds, self.num_pieces
         t0 = time.perf_counter()
         raster, seen = self._render()
-        view = view_image(seen, self.obs_cfg, self._thickness)
+        view = downsample(view_image(seen, self.obs_cfg, self._thickness), self.obs_cfg.supersample)
         t1 = time.perf_counter()
         joint = joint_counts(raster.ids, self._target_ids, p)
         counts, area = joint[:, 1:, 1:], joint[:, :, 1:].sum(1)
