@@ -1,19 +1,25 @@
-"""The fit test: can a network learn edge-joined objects at all? Minutes, before any long run.
+"""The fit test: can a network learn a set of objects at all? Minutes, before any long run.
 
 Labels a few thousand states of one chaos mode (dense counterfactual targets, as
-``conf/dense.yaml``), trains each candidate network on exactly those states with the dense
-recipe's supervised loop (no DAgger), and benches it greedily, the policy alone, on:
+``conf/dense.yaml``), trains each candidate (a network, or an observation encoding) on exactly
+those states with the dense recipe's supervised loop (no DAgger), and benches it greedily, the
+policy alone, on the tangram's:
 
 * ``own``: objects it was trained on (does it fit what it was shown? the oracle is the ceiling);
 * ``tile``: held-out edge-joined objects (seed 7);
 * ``chaos``: held-out objects of today's chaos mix (scatter and attract, seed 7);
-* ``library``: the built-in human figures (those that need no flip).
+* ``library``: the built-in human figures (those that need no flip);
 
-It prints one row per network: Rela / IoU on each set, the last epoch's loss, parameters and
+and on another task's (``--config conf/cutlery_dense.yaml``): ``own``, ``chaos`` (held-out objects
+drawn as the training objects are, seed 7) and ``random`` (the bench's Random objects, seed 7).
+
+It prints one row per candidate: Rela / IoU on each set, the last epoch's loss, parameters and
 minutes per epoch on this machine; the oracle's row is the ceiling. Runs go to ``--out``
-(one folder per network; the labelled states are shared between them, labelled once)::
+(one folder per candidate; the labelled states are shared by candidates that observe alike,
+labelled once)::
 
     python benchmarks/fit_test.py --objects 430 --epochs 20 --nets today,attention,unet
+    python benchmarks/fit_test.py --config conf/cutlery_dense.yaml --mode mix --nets today,grey4
 
 Choose networks here, on held-out chaos and the library, never on mrchaos104.
 """
@@ -44,8 +50,9 @@ from mrchaos.learn.evaluate import evaluate, policy_actor
 from mrchaos.learn.policy import count_parameters
 from mrchaos.tasks.chaos import generate
 
-#: Candidate networks: policy overrides on top of the recipe's (conf/dense.yaml: the spatial net
-#: with its 32-channel context path). "today" is the shipped policies' network.
+#: Candidates: overrides on top of the recipe's (conf/dense.yaml: the spatial net with its
+#: 32-channel context path). "today" is the shipped policies' network; "grey<k>" today's network
+#: on the grey-level observation drawn k times finer (env.observation.supersample).
 NETS: dict[str, list[str]] = {
     "today": [],
     "coords": ["policy.coords=true"],
@@ -54,9 +61,13 @@ NETS: dict[str, list[str]] = {
     "unet": ["policy.global_view=unet"],
     "unet32": ["policy.global_view=unet", "policy.global_width=32"],
     "attention4": ["policy.global_view=attention", "policy.global_layers=4"],
+    "grey2": ["env.observation.supersample=2"],
+    "grey4": ["env.observation.supersample=4"],
 }
 
+#: The bench sets of the tangram and of any other task.
 SETS = ("own", "tile", "chaos", "library")
+TASK_SETS = ("own", "chaos", "random")
 
 
 def _eval_sets(cfg: TrainConfig, n: int) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -65,6 +76,11 @@ def _eval_sets(cfg: TrainConfig, n: int) -> dict[str, tuple[np.ndarray, np.ndarr
     piece_set = get_piece_set(cfg.env.piece_set)
     view = cfg.env.view
     own, _, own_m = generate(piece_set, cfg.bc.objects, np.random.default_rng(cfg.bc.seed), cfg.task.chaos, view)
+    if cfg.task.preset != "tangram":
+        held, _, held_m = generate(piece_set, n, np.random.default_rng(7), cfg.task.chaos, view)
+        bench = Bench(None, ["Random"], random_objects=n, seed=7, task=cfg.task.preset)
+        [(_, rand, rand_m, _)] = bench.targets["Random"]  # one piece set: the training's
+        return {"own": (own[:n], own_m[:n]), "chaos": (held, held_m), "random": (rand, rand_m)}
     tile, _, tile_m = generate(
         piece_set, n, np.random.default_rng(7), dataclasses.replace(cfg.task.chaos, mode="tile"), view
     )
@@ -96,10 +112,10 @@ def _score(env: TangramEnv, actor, sets: dict) -> dict[str, dict[str, float]]:
     return out
 
 
-def _bench_policy(spec: str, sets: dict) -> dict[str, dict[str, float]]:
+def _bench_policy(spec: str, sets: dict, task: str) -> dict[str, dict[str, float]]:
     """A trained policy (shipped or a run, re-ranked ones played as the bench plays them) on the
     same sets, greedy, with the bench's env for it."""
-    bench = Bench(None, ["Random"], random_objects=1, seed=2024, num_worlds=100)
+    bench = Bench(None, ["Random"], random_objects=1, seed=2024, num_worlds=100, task=task)
     policy = resolve_policy(spec)
     env = bench.make_env(policy)
     return _score(env, bench.actor(policy, env), sets)
@@ -151,11 +167,13 @@ def main(argv: list[str] | None = None) -> int:
     if "oracle" not in results:
         results["oracle"] = {"sets": _bench(base, lambda env, td: oracle_actions(env), sets)}
     for spec in args.policy:
-        results[spec] = {"sets": _bench_policy(spec, sets)}
+        results[spec] = {"sets": _bench_policy(spec, sets, base.task.preset)}
         write_atomic(summary, json.dumps(results, indent=1) + "\n")
-    data = out / "data" / "round_0.pt"
     for name in names:
         cfg = load_config(args.config, shared + NETS[name] + [f"name=fit_{name}"])
+        # The states hold the observation: candidates that observe differently label their own.
+        k = cfg.env.observation.supersample
+        data = out / "data" / ("round_0.pt" if k == 1 else f"round_0_supersample{k}.pt")
         run_dir = out / name
         if data.exists() and not (run_dir / "data" / "round_0.pt").exists():
             (run_dir / "data").mkdir(parents=True, exist_ok=True)
@@ -181,6 +199,7 @@ def main(argv: list[str] | None = None) -> int:
             "sets": _bench(cfg, policy_actor(run.policy), sets),
         }
         write_atomic(summary, json.dumps(results, indent=1) + "\n")
+    data = out / "data" / "round_0.pt"
     if "target_entropy" not in results and data.exists():
         results["target_entropy"] = _target_entropy(data, base.bc.temperature)
         write_atomic(summary, json.dumps(results, indent=1) + "\n")
@@ -188,17 +207,19 @@ def main(argv: list[str] | None = None) -> int:
         print(f"the labels' own entropy, the floor of the loss: {results['target_entropy']:.2f}")
     if names:
         print(
-            f"fit test: {args.objects} {args.mode} objects ({7 * args.objects} states), {args.epochs} epochs; "
+            f"fit test: {args.objects} {args.mode} objects ({len(get_piece_set(base.env.piece_set)) * args.objects} "
+            f"states), {args.epochs} epochs; "
             f"Rela / IoU, greedy, the policy alone; {torch.get_num_threads()} threads"
         )
     else:
         print(f"trained policies on the fit test's sets ({args.mode} objects for 'own'); Rela / IoU, greedy, alone")
-    print("| network | params | loss (first → last) | min/epoch | " + " | ".join(SETS) + " |")
-    print("|---|---|---|---|" + "---|" * len(SETS))
+    names_of_sets = list(sets)
+    print("| candidate | params | loss (first → last) | min/epoch | " + " | ".join(names_of_sets) + " |")
+    print("|---|---|---|---|" + "---|" * len(names_of_sets))
     for name, r in results.items():
         if name == "target_entropy":
             continue
-        cells = " | ".join(f"{r['sets'][s]['rela']:.1f} / {r['sets'][s]['iou']:.1f}" for s in SETS)
+        cells = " | ".join(f"{r['sets'][s]['rela']:.1f} / {r['sets'][s]['iou']:.1f}" for s in names_of_sets)
         if "loss" not in r:  # the oracle, or a trained policy
             print(f"| {name} | | | | {cells} |")
         else:
