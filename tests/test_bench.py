@@ -400,3 +400,18 @@ def test_bench_grid_settings_bad_input(capsys):
     assert "action grid sizes must be >= 1" in capsys.readouterr().err
     with pytest.raises(BenchError, match="no flip key"):
         Bench(None, ["Random"], random_objects=1, grid={"flip": True})
+
+
+def test_the_main_job_benches_the_generalist_in_free_order_with_the_flip(tmp_path, capsys):
+    """``mrchaos-bench`` with no --policy: the shipped generalist, which chooses its pieces and
+    turns them over (so the figures that need the flip are evaluated); ``mrchaos`` stays the
+    paper's method by name."""
+    out = tmp_path / "main"
+    args = ["--families", "random", "--random-objects", "4", "--worlds", "4", "--out", str(out)]
+    assert bench_main(args) == 0
+    res = json.loads((out / "results.json").read_text())
+    assert list(res["policies"]) == ["mrchaos-generalist"]
+    spec = resolve_policy("mrchaos-generalist")
+    assert spec.order == "free" and spec.flips
+    assert "--flip implied by mrchaos-generalist" in capsys.readouterr().err
+    assert resolve_policy("mrchaos").label.startswith("MRChaos (full curriculum")

@@ -50,6 +50,10 @@ SHIPPED = {
         "mrchaos-exit.pt",
         "expert iteration on top of mrchaos-dense (conf/recipes/rerank.yaml --until exit)",
     ),
+    "mrchaos-generalist": (
+        "mrchaos-generalist.pt",
+        "free order, the flip and the re-ranker in one policy, on chaos objects only (conf/recipes/generalist.yaml)",
+    ),
     "mrchaos-rerank": (
         "mrchaos-rerank.pt",
         "mrchaos-exit's top 5 re-ranked by an afterstate network (conf/recipes/rerank.yaml)",
