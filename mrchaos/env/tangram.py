@@ -355,9 +355,8 @@ class TangramEnv(EnvBase):
         ids = rasterize(polys, self.view, parts=ps.raster_parts).ids
         self._target_ids[rows] = ids
         fine = self.obs_cfg.supersample
-        if fine > 1:
-            ids = rasterize(polys, self._obs_view, parts=ps.raster_parts).ids
-        self._silhouette[rows] = downsample(silhouette_image(ids), fine)
+        seen = ids if fine == 1 else rasterize(polys, self._obs_view, parts=ps.raster_parts).ids
+        self._silhouette[rows] = downsample(silhouette_image(seen), fine)
         mirrored = tasks.mirrored
         assert mirrored is not None  # TargetBatch fills it
         pre = [(np.flatnonzero(k > j), tasks.poses[k > j, j], mirrored[k > j, j]) for j in range(self.num_pieces)]
