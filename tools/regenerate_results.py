@@ -75,6 +75,13 @@ TABLES: dict[str, list[str]] = {
              "--policy", "mrchaos-fixed-twin", "--policy", "mrchaos-dense", "--policy", "mrchaos-dense-ppo"],
     "free_robot": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--placement", "robot",
                    "--policy", "mrchaos-free", "--policy", "mrchaos-fixed-twin"],
+    # README Table I's first row and docs/free-order.md: the generalist (free order, the flip, the
+    # re-ranker) alone, as the main job benches it, on the figures as published, reflected in x, and
+    # placed by the simulated UR5e. Apart from table1: its implied flip would change the oracle's row.
+    "generalist": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--policy", "mrchaos-generalist"],
+    "generalist_mirrored": ["--families", "all", "--figures", "{mirrored}", "--flip", "--policy", "mrchaos-generalist"],
+    "generalist_robot": ["--families", "all", "--figures", "{figures}/mrchaos104.json", "--placement", "robot",
+                         "--policy", "mrchaos-generalist"],
 }  # fmt: skip
 
 

@@ -389,13 +389,8 @@ class RerankRun:
                 "minutes": self.minutes,
             }
             self.rows.append(row)
-            log.info(
-                "epoch %d: loss %.4f, agreement %.1f %% train, %.1f %% held out",
-                row["epoch"],
-                row["loss"],
-                100 * ta,
-                100 * ha,
-            )
+            held_note = f", {100 * ha:.1f} % held out" if held is not None else " (none held out)"
+            log.info("epoch %d: loss %.4f, agreement %.1f %% train%s", row["epoch"], row["loss"], 100 * ta, held_note)
             self._save()
         ev = {}
         if n_eval > 0:
