@@ -154,20 +154,41 @@ def test_a_refined_grid_needs_the_spatial_policy_in_the_set_s_order():
         build_actor_critic(PolicyConfig(), FINE, View(), pieces=7)
 
 
-@pytest.mark.parametrize(
-    "over",
-    [
-        {"algo": "bc", "bc": {"targets": "dense"}, "exit": {"rounds": 1}},
-        {"algo": "rerank"},
-    ],
-)
-def test_what_covers_only_the_coarse_grid_refuses_a_refined_one_at_load(over):
+def test_the_re_ranker_refuses_a_refined_grid_at_load_and_expert_iteration_takes_it():
     from mrchaos.learn.config import ConfigError, config_from_dict
 
-    with pytest.raises(ConfigError, match="cover the coarse grid only"):
-        config_from_dict({"env": {"grid": {"fine_xy": 3}}, **over}, "test")
+    with pytest.raises(ConfigError, match="the re-ranker covers the coarse grid only") as e:
+        config_from_dict({"env": {"grid": {"fine_xy": 3}}, "algo": "rerank"}, "test")
+    assert "\n" not in str(e.value)
     for targets in ("oracle", "dense"):
         config_from_dict({"env": {"grid": {"fine_xy": 3}}, "algo": "bc", "bc": {"targets": targets}}, "test")
+    over = {"algo": "bc", "bc": {"targets": "dense"}, "exit": {"rounds": 1}}
+    assert config_from_dict({"env": {"grid": {"fine_xy": 3}}, **over}, "test").exit.rounds == 1
+
+
+def test_the_planner_on_a_refined_grid_plans_refined_actions_and_its_ious_are_the_env_s():
+    """Candidates are the policy's best coarse cells, each with its most probable offset; the
+    planner's recorded IoU of the chosen last placement is what replaying its plan scores."""
+    from mrchaos.learn.evaluate import evaluate
+    from mrchaos.learn.planner import Lookahead
+    from mrchaos.tasks.chaos import ChaosConfig, generate
+
+    env, ac = _refined_policy()
+    policy = ac.get_policy_operator()
+    targets, _, _ = generate(env.piece_set, 3, np.random.default_rng(5), ChaosConfig(angle_step=0.0), env.view)
+    with torch.no_grad():
+        lab, chosen = Lookahead(policy, 3).label(env, targets)  # 3 worlds: one target at a time
+        first = policy.get_dist(env.reset_to(targets).select("observation").clone())
+    p = env.num_pieces
+    assert chosen.shape == (3, p, 4) and lab.candidates.shape == (3 * p, 3, 4)
+    # Rows go target by target, step by step. Step 0's candidates are the policy's top 3 with
+    # their offsets, the mode first.
+    assert (lab.candidates[::p] == first.top_actions(3)).all() and (lab.candidates[::p, 0] == first.mode).all()
+    assert (chosen < np.array(FINE.nvec)).all() and len(np.unique(chosen[..., 3])) > 1
+    played = evaluate(env, targets, Lookahead.replay(chosen, env))
+    last = lab.iou[p - 1 :: p].max(1).values  # the chosen last placement's IoU, per target
+    assert torch.allclose(torch.as_tensor(played.iou, dtype=torch.float32), last, atol=1e-5)
+    env.close()
 
 
 def test_dense_demonstrations_on_a_refined_grid_carry_the_oracle_s_offset_and_the_fine_head_fits_it():
@@ -224,3 +245,36 @@ def test_a_supervised_run_on_a_refined_grid_trains_the_fine_head(tmp_path):
     model = load_checkpoint(run / "checkpoints" / "last.pt")["model"]
     fine = [v for k, v in model.items() if "conv" in k and k.endswith("weight") and v.shape[0] == 9 + 8 * 3]
     assert len(fine) == 1 and fine[0].abs().sum() > 0
+
+
+def test_an_expert_iteration_round_on_a_refined_grid_keeps_the_offsets_and_the_planner_s_candidates(tmp_path):
+    """The cutlery recipe's exit stage end to end: its shard holds the planner's refined candidates
+    and their IoUs beside the dense targets and the oracle's offsets."""
+    from mrchaos.cli.train import main as train_main
+
+    root = Path(__file__).resolve().parents[1]
+    args = [
+        str(root / "conf" / "cutlery_dense.yaml"),
+        f"runs_dir={tmp_path}",
+        "bc.objects=3",
+        "bc.epochs=1",
+        "bc.dagger_rounds=0",
+        "exit.rounds=1",
+        "exit.objects=2",
+        "exit.k=2",
+        "exit.epochs=1",
+        "exit.dense=1.0",
+        "env.num_worlds=4",
+        "bc.minibatch_size=4",
+        "policy.channels=[8,16,16]",
+        "policy.hidden=32",
+        "policy.context=8",
+        "precision=fp32",
+        "--eval=0",
+    ]
+    assert train_main(args) == 0
+    shard = torch.load(tmp_path / "cutlery_dense" / "data" / "round_1.pt", weights_only=True)
+    n = 2 * 3  # objects x pieces
+    assert shard["candidates"].shape == (n, 2, 4) and shard["fine_label"].shape == (n, 4)
+    assert shard["label"].shape[0] == n and not shard["iou"].isnan().any()
+    assert (shard["iou"] >= 0).all() and (shard["iou"] <= 1).all()

@@ -208,7 +208,7 @@ def test_a_two_stage_recipe_trains_the_second_stage_from_the_first_ones_weights(
     assert train_main(["--resume", str(run)]) == 0
 
 
-@pytest.mark.parametrize("name", ["rerank", "flip", "dense_ppo", "free", "rerank_unet", "generalist"])
+@pytest.mark.parametrize("name", ["rerank", "flip", "dense_ppo", "free", "rerank_unet", "generalist", "cutlery"])
 def test_the_shipped_recipes_resolve_from_scratch(name):
     rec = load_recipe(ROOT / "conf" / "recipes" / f"{name}.yaml")
     assert rec.stages[0].config.init_from is None

@@ -396,8 +396,9 @@ class SupervisedRun:
         if self.free:
             assert isinstance(lab.extra, dict) and lab.remaining is not None  # free order records both
             states = {"observation": lab.observation, **lab.extra, "remaining": lab.remaining}
+        elif isinstance(lab.extra, dict):  # a refined grid's dense label and the oracle's offset
+            states = {"observation": lab.observation, **lab.extra}
         else:
-            assert isinstance(lab.extra, torch.Tensor)  # one label tensor in the set's order
             states = {"observation": lab.observation, "label": lab.extra}
         return self._shard(states, lab.candidates, lab.iou), f"the planner's assemblies of {what}"
 
@@ -408,6 +409,10 @@ class SupervisedRun:
         if self.free:
             label = free_label(env, bc.overlap_limit, bc.temperature, rows)
             return label | {"choosable": torch.as_tensor(env.choosable()[rows])}
+        if self.dense and env.grid.refined:
+            # As in demonstrations(): the dense targets grade the coarse cells, the oracle's refined
+            # action teaches the offset at its own cell.
+            return {"label": _dense_label(env, bc.overlap_limit, rows), "fine_label": oracle_actions(env)[rows]}
         if self.dense:
             return _dense_label(env, bc.overlap_limit, rows)
         return oracle_actions(env)[rows]
@@ -436,8 +441,9 @@ class SupervisedRun:
     ) -> dict[str, torch.Tensor]:
         k, n = self.cfg.exit.k, len(states["observation"])
         if candidates is None or iou is None:
-            # A candidate is (x, y, orientation), with free order (piece, x, y, orientation).
-            candidates = torch.zeros(n, k, 4 if self.free else 3, dtype=torch.int64)
+            # A candidate is an env action: (x, y, orientation), with free order the piece first,
+            # on a refined grid the offset last.
+            candidates = torch.zeros(n, k, self.env.action_spec.shape[-1], dtype=torch.int64)
             iou = torch.full((n, k), float("nan"))
         return {**states, "candidates": candidates, "iou": iou}
 

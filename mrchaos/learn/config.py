@@ -363,11 +363,11 @@ class TrainConfig:
             raise ValueError(
                 "optim.lr_final anneals over the run's budget: set collector.total_frames or collector.max_minutes"
             )
-        if self.env.grid.refined and (self.exit.rounds or self.algo == "rerank"):
-            # The planner's candidates and the re-ranker's footprints are the coarse grid's.
+        if self.env.grid.refined and self.algo == "rerank":
+            # The re-ranker's footprints are drawn at the coarse grid's poses.
             raise ValueError(
-                "a refined grid (env.grid.fine_xy, fine_theta) trains with PPO or supervision; expert "
-                "iteration and the re-ranker cover the coarse grid only"
+                "a refined grid (env.grid.fine_xy, fine_theta) trains with PPO, supervision or expert "
+                "iteration; the re-ranker covers the coarse grid only"
             )
         if self.exit.rounds and self.algo != "bc":
             raise ValueError("exit.rounds are rounds of supervision: set algo: bc")

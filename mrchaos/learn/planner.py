@@ -44,7 +44,7 @@ class PlannerLabels:
     Attributes:
         observation: (S, 2, H, W) uint8, the state before the step (as the policy saw it).
         candidates: (S, k, 3) int64 grid actions (x, y, orientation), in the policy's order
-            ((S, k, 4) with free order, the piece first).
+            ((S, k, 4) with free order, the piece first; on a refined grid, the offset last).
         iou: (S, k) float32 silhouette IoU at the end of each candidate's greedy completion.
         step: (S,) int64 the step of the state (how many pieces were placed before it).
         extra: (S, ...) what ``on_state`` returned for the state (e.g. dense targets; a tensor, or
@@ -100,7 +100,8 @@ class Lookahead:
 
     def _candidates(self, env: TangramEnv, td: TensorDict) -> torch.Tensor:
         """(N, k, 3) the k best grid actions in the policy's (or the re-ranker's) order, best first
-        ((N, k, 4) with free order)."""
+        ((N, k, 4) with free order; on a refined grid each coarse cell with its most probable
+        offset)."""
         if self.reranked is not None:
             return self.reranked.ranked(env, td)[:, : self.k].cpu()
         return self._dist(td).top_actions(self.k).cpu()
@@ -110,7 +111,8 @@ class Lookahead:
 
     def plan(self, env: TangramEnv, targets: np.ndarray, mirrored: np.ndarray | None = None) -> np.ndarray:
         """The chosen (x, y, orientation) index of every step of every target: (n, pieces, 3);
-        with free order (piece, x, y, orientation), (n, pieces, 4)."""
+        with free order (piece, x, y, orientation), on a refined grid (x, y, orientation, fine):
+        (n, pieces, 4)."""
         return self._run(env, targets, mirrored)[0]
 
     def label(
@@ -142,7 +144,7 @@ class Lookahead:
             raise ValueError(f"lookahead k={k} needs at least k worlds, the env has {nw}")
         per = nw // k
         inputs = ["observation", *(FREE_ORDER_KEYS if env.free_order else ())]
-        chosen = np.zeros((n, p, 4 if env.free_order else 3), dtype=np.int64)
+        chosen = np.zeros((n, p, env.action_spec.shape[-1]), dtype=np.int64)
         rec: dict[str, list] = {
             "observation": [],
             "candidates": [],
