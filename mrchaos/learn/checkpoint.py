@@ -72,7 +72,7 @@ SHIPPED = {
     ),
     "mrchaos-cutlery": (
         "mrchaos-cutlery.pt",
-        "cutlery: dense supervision and 2 DAgger rounds on the refined grid (conf/cutlery_dense.yaml)",
+        "cutlery: dense targets, 3 DAgger rounds, 2 of expert iteration, refined grid (conf/recipes/cutlery.yaml)",
     ),
     "mrchaos-soda": ("mrchaos-soda.pt", "MRChaos on soda cans (conf/soda.yaml)"),
 }
