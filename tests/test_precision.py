@@ -217,28 +217,21 @@ def test_dense_demonstrations_on_a_refined_grid_carry_the_oracle_s_offset_and_th
     env.close()
 
 
+def _tiny_cutlery(tmp_path: Path, *overrides: str) -> list[str]:
+    """mrchaos-train's arguments for conf/cutlery_dense.yaml on a tiny net, no DAgger, no evaluation."""
+    root = Path(__file__).resolve().parents[1]
+    tiny = ["bc.dagger_rounds=0", "env.num_worlds=4", "bc.minibatch_size=4", "policy.channels=[8,16,16]"]
+    tiny += ["policy.hidden=32", "policy.context=8", "precision=fp32"]
+    return [str(root / "conf" / "cutlery_dense.yaml"), f"runs_dir={tmp_path}", *tiny, *overrides, "--eval=0"]
+
+
 def test_a_supervised_run_on_a_refined_grid_trains_the_fine_head(tmp_path):
     """The recipe end to end: its shards keep the oracle's offsets and its epochs fit them (the
     fine head starts at zero, so any weight away from zero was learnt)."""
     from mrchaos.cli.train import main as train_main
     from mrchaos.learn.checkpoint import load_checkpoint
 
-    root = Path(__file__).resolve().parents[1]
-    args = [
-        str(root / "conf" / "cutlery_dense.yaml"),
-        f"runs_dir={tmp_path}",
-        "bc.objects=4",
-        "bc.epochs=2",
-        "bc.dagger_rounds=0",
-        "env.num_worlds=4",
-        "bc.minibatch_size=4",
-        "policy.channels=[8,16,16]",
-        "policy.hidden=32",
-        "policy.context=8",
-        "precision=fp32",
-        "--eval=0",
-    ]
-    assert train_main(args) == 0
+    assert train_main(_tiny_cutlery(tmp_path, "bc.objects=4", "bc.epochs=2")) == 0
     run = tmp_path / "cutlery_dense"
     shard = torch.load(run / "data" / "round_0.pt", weights_only=True)
     assert shard["fine_label"].shape == (12, 4)
@@ -252,27 +245,8 @@ def test_an_expert_iteration_round_on_a_refined_grid_keeps_the_offsets_and_the_p
     and their IoUs beside the dense targets and the oracle's offsets."""
     from mrchaos.cli.train import main as train_main
 
-    root = Path(__file__).resolve().parents[1]
-    args = [
-        str(root / "conf" / "cutlery_dense.yaml"),
-        f"runs_dir={tmp_path}",
-        "bc.objects=3",
-        "bc.epochs=1",
-        "bc.dagger_rounds=0",
-        "exit.rounds=1",
-        "exit.objects=2",
-        "exit.k=2",
-        "exit.epochs=1",
-        "exit.dense=1.0",
-        "env.num_worlds=4",
-        "bc.minibatch_size=4",
-        "policy.channels=[8,16,16]",
-        "policy.hidden=32",
-        "policy.context=8",
-        "precision=fp32",
-        "--eval=0",
-    ]
-    assert train_main(args) == 0
+    over = ["bc.objects=3", "bc.epochs=1", "exit.rounds=1", "exit.objects=2", "exit.k=2", "exit.epochs=1"]
+    assert train_main(_tiny_cutlery(tmp_path, *over, "exit.dense=1.0")) == 0
     shard = torch.load(tmp_path / "cutlery_dense" / "data" / "round_1.pt", weights_only=True)
     n = 2 * 3  # objects x pieces
     assert shard["candidates"].shape == (n, 2, 4) and shard["fine_label"].shape == (n, 4)
