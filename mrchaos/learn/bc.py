@@ -106,6 +106,21 @@ def _dense_label(
     return q
 
 
+def _set_order_label(
+    env: TangramEnv, dense: bool, overlap_limit: float, rows: np.ndarray | None = None
+) -> dict[str, torch.Tensor]:
+    """The label of worlds ``rows`` (default all) in the set's order: ``label``, the oracle's grid
+    action (N, 3 or 4) or with ``dense`` the counterfactual coverage (:func:`_dense_label`); dense
+    on a refined grid also ``fine_label`` (N, 4), the oracle's refined action: the dense targets
+    grade the coarse cells, and the offset is learnt at the oracle's own cell."""
+    if dense and not env.grid.refined:
+        return {"label": _dense_label(env, overlap_limit, rows)}
+    oracle = oracle_actions(env) if rows is None else oracle_actions(env)[rows]
+    if not dense:
+        return {"label": oracle}
+    return {"label": _dense_label(env, overlap_limit, rows), "fine_label": oracle}
+
+
 #: Free-order labels keep each state's best actions over all its choosable pieces (a full label
 #: would be P times the fixed order's: 145 kB a state for the tangram set); the softmax(coverage /
 #: T) target puts 98.9 % of its mass on the best 256 on average (measured on conf/flip_exit.yaml's
@@ -191,10 +206,8 @@ def demonstrations(
             if actor is None:
                 return oracle_actions(e, random_pieces(e, order))
         else:
-            add("label", _dense_label(e, overlap_limit) if dense else oracle_actions(e))
-            if dense and e.grid.refined:
-                # Dense targets grade the coarse grid; the offset is learnt at the oracle's own cell.
-                add("fine_label", oracle_actions(e))
+            for key, value in _set_order_label(e, dense, overlap_limit).items():
+                add(key, value)
         return oracle_actions(e) if actor is None else actor(e, td)
 
     evaluate(env, targets, act, mirrored=mirrored)
@@ -396,26 +409,19 @@ class SupervisedRun:
         if self.free:
             assert isinstance(lab.extra, dict) and lab.remaining is not None  # free order records both
             states = {"observation": lab.observation, **lab.extra, "remaining": lab.remaining}
-        elif isinstance(lab.extra, dict):  # a refined grid's dense label and the oracle's offset
-            states = {"observation": lab.observation, **lab.extra}
         else:
-            states = {"observation": lab.observation, "label": lab.extra}
+            assert isinstance(lab.extra, dict)  # _set_order_label's parts
+            states = {"observation": lab.observation, **lab.extra}
         return self._shard(states, lab.candidates, lab.iou), f"the planner's assemblies of {what}"
 
-    def _state_label(self, env: TangramEnv, rows: np.ndarray) -> torch.Tensor | dict[str, torch.Tensor]:
-        """The dense or oracle label of worlds ``rows`` in their current state; with free order
+    def _state_label(self, env: TangramEnv, rows: np.ndarray) -> dict[str, torch.Tensor]:
+        """The label of worlds ``rows`` in their current state (:func:`_set_order_label`); with free order
         :func:`free_label`'s parts and the pieces each may choose."""
         bc = self.cfg.bc
         if self.free:
             label = free_label(env, bc.overlap_limit, bc.temperature, rows)
             return label | {"choosable": torch.as_tensor(env.choosable()[rows])}
-        if self.dense and env.grid.refined:
-            # As in demonstrations(): the dense targets grade the coarse cells, the oracle's refined
-            # action teaches the offset at its own cell.
-            return {"label": _dense_label(env, bc.overlap_limit, rows), "fine_label": oracle_actions(env)[rows]}
-        if self.dense:
-            return _dense_label(env, bc.overlap_limit, rows)
-        return oracle_actions(env)[rows]
+        return _set_order_label(env, self.dense, bc.overlap_limit, rows)
 
     def _empty_states(self) -> dict[str, torch.Tensor]:
         g, v, p = self.env.grid, self.env.view, self.env.num_pieces
